@@ -1,0 +1,426 @@
+//! Pinhole camera with lens distortion (ACM supp. section 2.1, eqs. 4-6) and exact Jacobians.
+//!
+//! The paper's model (eq. 5) has radial coefficients `k1, k2`; the authors' tool and every
+//! calibration file of the field use OpenCV's five coefficients `(k1, k2, p1, p2, k3)`. This
+//! module implements the OpenCV model; the paper's model is the special case
+//! `p1 = p2 = k3 = 0`.
+//!
+//! A camera is described by the flat parameter vector of [`N_PARAMS`] values
+//! `[rx, ry, rz, tx, ty, tz, fx, fy, cx, cy, k1, k2, p1, p2, k3]` (see [`param`]), where
+//! `x_cam = R(r) x_world + t` (eq. 4).
+
+use crate::error::{ensure_finite, ensure_len, AcmError, Result};
+use crate::rotation::rodrigues_jacobian;
+use nalgebra::{Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
+use rayon::prelude::*;
+
+/// Number of parameters of one camera.
+pub const N_PARAMS: usize = 15;
+
+/// Indices into the camera parameter vector.
+pub mod param {
+    /// Rodrigues vector of the world→camera rotation (3 entries from here).
+    pub const RVEC: usize = 0;
+    /// World→camera translation (3 entries from here), in world units.
+    pub const TVEC: usize = 3;
+    /// Focal length in x (px).
+    pub const FX: usize = 6;
+    /// Focal length in y (px).
+    pub const FY: usize = 7;
+    /// Principal point x (px).
+    pub const CX: usize = 8;
+    /// Principal point y (px).
+    pub const CY: usize = 9;
+    /// OpenCV distortion `(k1, k2, p1, p2, k3)` (5 entries from here).
+    pub const DIST: usize = 10;
+}
+
+/// Points with a camera-frame depth at or below this value (world units) are "behind" the
+/// camera: they are reported (`None` / NaN), never projected.
+pub const MIN_DEPTH: f64 = 1e-9;
+
+/// Jacobian of a pixel with respect to the camera parameters.
+pub type ParamJacobian = SMatrix<f64, 2, N_PARAMS>;
+
+/// One calibrated camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Camera {
+    params: [f64; N_PARAMS],
+    rot: Matrix3<f64>,
+    drot: [Matrix3<f64>; 3],
+}
+
+/// A projected point with its exact derivatives.
+#[derive(Debug, Clone)]
+pub struct ProjectionJacobian {
+    /// Pixel coordinates `(u, v)`.
+    pub pixel: Vector2<f64>,
+    /// `∂(u, v)/∂x_world` (2×3).
+    pub d_point: Matrix2x3<f64>,
+    /// `∂(u, v)/∂params` (2×15) in the order of [`param`].
+    pub d_params: ParamJacobian,
+}
+
+impl Camera {
+    /// Builds a camera from its flat parameter vector (layout in [`param`]).
+    ///
+    /// # Errors
+    /// Shape error for a length other than [`N_PARAMS`], non-finite error for NaN/inf,
+    /// invalid error for non-positive focal lengths.
+    pub fn from_params(params: &[f64]) -> Result<Self> {
+        ensure_len(params.len(), N_PARAMS, "camera parameter vector")?;
+        ensure_finite(params, "camera parameters")?;
+        if params[param::FX] <= 0.0 || params[param::FY] <= 0.0 {
+            return Err(AcmError::Invalid(format!(
+                "focal lengths must be positive, got fx={}, fy={}",
+                params[param::FX],
+                params[param::FY]
+            )));
+        }
+        let mut p = [0.0; N_PARAMS];
+        p.copy_from_slice(params);
+        let (rot, drot) = rodrigues_jacobian(&Vector3::new(p[0], p[1], p[2]));
+        Ok(Self {
+            params: p,
+            rot,
+            drot,
+        })
+    }
+
+    /// Builds cameras from `n` concatenated parameter vectors (flat, `15 n`).
+    ///
+    /// # Errors
+    /// As [`Camera::from_params`], naming the camera index.
+    pub fn many_from_params(params: &[f64]) -> Result<Vec<Self>> {
+        if params.is_empty() || params.len() % N_PARAMS != 0 {
+            return Err(AcmError::Shape(format!(
+                "camera parameters: {} values is not a positive multiple of {N_PARAMS}",
+                params.len()
+            )));
+        }
+        params
+            .chunks(N_PARAMS)
+            .enumerate()
+            .map(|(i, p)| {
+                Self::from_params(p).map_err(|e| match e {
+                    AcmError::Invalid(s) => AcmError::Invalid(format!("camera {i}: {s}")),
+                    AcmError::NonFinite(s) => AcmError::NonFinite(format!("camera {i}: {s}")),
+                    other => other,
+                })
+            })
+            .collect()
+    }
+
+    /// The flat parameter vector.
+    pub fn params(&self) -> &[f64; N_PARAMS] {
+        &self.params
+    }
+
+    /// World→camera rotation matrix `R(r̃)`.
+    pub fn rotation(&self) -> &Matrix3<f64> {
+        &self.rot
+    }
+
+    /// World→camera translation `t̃`.
+    pub fn translation(&self) -> Vector3<f64> {
+        Vector3::new(self.params[3], self.params[4], self.params[5])
+    }
+
+    /// Camera centre in world coordinates, `−Rᵀ t`.
+    pub fn center(&self) -> Vector3<f64> {
+        -(self.rot.transpose() * self.translation())
+    }
+
+    /// Maps a world point into the camera frame (the inner part of eq. 4).
+    pub fn to_camera(&self, x: &Vector3<f64>) -> Vector3<f64> {
+        self.rot * x + self.translation()
+    }
+
+    /// Distortion and intrinsics applied to normalised image coordinates `(x', y')`
+    /// (eqs. 5-6 with OpenCV's tangential and k3 terms).
+    fn distort(&self, xn: f64, yn: f64) -> Vector2<f64> {
+        let p = &self.params;
+        let (k1, k2, p1, p2, k3) = (p[10], p[11], p[12], p[13], p[14]);
+        let r2 = xn * xn + yn * yn;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn);
+        let yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn;
+        Vector2::new(p[6] * xd + p[8], p[7] * yd + p[9])
+    }
+
+    /// Projects a world point to pixels (eq. 4); `None` if the point is not in front of the
+    /// camera (depth ≤ [`MIN_DEPTH`]).
+    pub fn project(&self, x: &Vector3<f64>) -> Option<Vector2<f64>> {
+        let y = self.to_camera(x);
+        if y.z <= MIN_DEPTH {
+            return None;
+        }
+        Some(self.distort(y.x / y.z, y.y / y.z))
+    }
+
+    /// Projects a world point and returns the exact Jacobians with respect to the point and
+    /// to all 15 camera parameters; `None` if the point is behind the camera.
+    pub fn project_jacobian(&self, x: &Vector3<f64>) -> Option<ProjectionJacobian> {
+        let y = self.to_camera(x);
+        if y.z <= MIN_DEPTH {
+            return None;
+        }
+        let p = &self.params;
+        let (fx, fy) = (p[6], p[7]);
+        let (k1, k2, p1, p2, k3) = (p[10], p[11], p[12], p[13], p[14]);
+        let iz = 1.0 / y.z;
+        let (xn, yn) = (y.x * iz, y.y * iz);
+        let r2 = xn * xn + yn * yn;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
+        let xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn);
+        let yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn;
+        let pixel = Vector2::new(fx * xd + p[8], fy * yd + p[9]);
+
+        // ∂(x'', y'')/∂(x', y')
+        let cross = 2.0 * xn * yn * dradial + 2.0 * p1 * xn + 2.0 * p2 * yn;
+        let dxd_dxn = radial + 2.0 * xn * xn * dradial + 2.0 * p1 * yn + 6.0 * p2 * xn;
+        let dyd_dyn = radial + 2.0 * yn * yn * dradial + 6.0 * p1 * yn + 2.0 * p2 * xn;
+        // ∂(u, v)/∂(x', y')
+        let d_norm = nalgebra::Matrix2::new(fx * dxd_dxn, fx * cross, fy * cross, fy * dyd_dyn);
+        // ∂(x', y')/∂y_cam
+        let d_proj = Matrix2x3::new(iz, 0.0, -xn * iz, 0.0, iz, -yn * iz);
+        let d_cam = d_norm * d_proj; // ∂(u, v)/∂y_cam
+
+        let d_point = d_cam * self.rot;
+        let mut d_params = ParamJacobian::zeros();
+        for k in 0..3 {
+            let col = d_cam * (self.drot[k] * x);
+            d_params.set_column(param::RVEC + k, &col);
+            d_params.set_column(param::TVEC + k, &d_cam.column(k).into_owned());
+        }
+        d_params[(0, param::FX)] = xd;
+        d_params[(1, param::FY)] = yd;
+        d_params[(0, param::CX)] = 1.0;
+        d_params[(1, param::CY)] = 1.0;
+        let r4 = r2 * r2;
+        let dist_cols = [
+            (xn * r2, yn * r2),                         // k1
+            (xn * r4, yn * r4),                         // k2
+            (2.0 * xn * yn, r2 + 2.0 * yn * yn),        // p1
+            (r2 + 2.0 * xn * xn, 2.0 * xn * yn),        // p2
+            (xn * r4 * r2, yn * r4 * r2),               // k3
+        ];
+        for (k, (a, b)) in dist_cols.iter().enumerate() {
+            d_params[(0, param::DIST + k)] = fx * a;
+            d_params[(1, param::DIST + k)] = fy * b;
+        }
+        Some(ProjectionJacobian {
+            pixel,
+            d_point,
+            d_params,
+        })
+    }
+
+    /// `∂x_cam/∂r̃` (3×3, column k = `(∂R/∂r̃_k) x`) for residuals that chain their own
+    /// derivatives through the camera frame.
+    pub fn d_camera_d_rvec(&self, x: &Vector3<f64>) -> Matrix3<f64> {
+        let mut m = Matrix3::zeros();
+        for k in 0..3 {
+            m.set_column(k, &(self.drot[k] * x));
+        }
+        m
+    }
+}
+
+/// Pixels and visibility of `n` points in `c` cameras.
+#[derive(Debug, Clone)]
+pub struct Projected {
+    /// `(c, n, 2)` row-major pixels; NaN where the point is behind the camera.
+    pub pixels: Vec<f64>,
+    /// `(c, n)`: `true` where the point is in front of the camera.
+    pub in_front: Vec<bool>,
+}
+
+fn points_from_flat(points: &[f64]) -> Result<usize> {
+    if points.len() % 3 != 0 {
+        return Err(AcmError::Shape(format!(
+            "points: {} values is not a multiple of 3",
+            points.len()
+        )));
+    }
+    ensure_finite(points, "3D points")?;
+    Ok(points.len() / 3)
+}
+
+/// Projects `n` world points (flat `(n, 3)`) into every camera, in parallel over points.
+///
+/// # Errors
+/// Shape error if `points.len()` is not a multiple of 3; non-finite error for NaN/inf points
+/// (use NaN-free inputs; callers mask missing points before projecting).
+pub fn project_points(cameras: &[Camera], points: &[f64]) -> Result<Projected> {
+    let n = points_from_flat(points)?;
+    let mut pixels = vec![f64::NAN; cameras.len() * n * 2];
+    let mut in_front = vec![false; cameras.len() * n];
+    for (c, cam) in cameras.iter().enumerate() {
+        pixels[c * n * 2..(c + 1) * n * 2]
+            .par_chunks_mut(2)
+            .zip(in_front[c * n..(c + 1) * n].par_iter_mut())
+            .zip(points.par_chunks(3))
+            .for_each(|((px, ok), x)| {
+                if let Some(uv) = cam.project(&Vector3::new(x[0], x[1], x[2])) {
+                    px[0] = uv.x;
+                    px[1] = uv.y;
+                    *ok = true;
+                }
+            });
+    }
+    Ok(Projected { pixels, in_front })
+}
+
+/// Projections with Jacobians of `n` points in `c` cameras.
+#[derive(Debug, Clone)]
+pub struct ProjectedJacobians {
+    /// `(c, n, 2)` pixels; NaN where the point is behind the camera.
+    pub pixels: Vec<f64>,
+    /// `(c, n, 2, 3)` derivatives with respect to the world point; NaN where behind.
+    pub d_point: Vec<f64>,
+    /// `(c, n, 2, 15)` derivatives with respect to the camera parameters; NaN where behind.
+    pub d_params: Vec<f64>,
+}
+
+/// Like [`project_points`], also returning the exact Jacobians (row-major blocks).
+///
+/// # Errors
+/// As [`project_points`].
+pub fn project_points_jacobian(cameras: &[Camera], points: &[f64]) -> Result<ProjectedJacobians> {
+    let n = points_from_flat(points)?;
+    let c = cameras.len();
+    let mut pixels = vec![f64::NAN; c * n * 2];
+    let mut d_point = vec![f64::NAN; c * n * 6];
+    let mut d_params = vec![f64::NAN; c * n * 2 * N_PARAMS];
+    for (ci, cam) in cameras.iter().enumerate() {
+        pixels[ci * n * 2..(ci + 1) * n * 2]
+            .par_chunks_mut(2)
+            .zip(d_point[ci * n * 6..(ci + 1) * n * 6].par_chunks_mut(6))
+            .zip(d_params[ci * n * 2 * N_PARAMS..(ci + 1) * n * 2 * N_PARAMS].par_chunks_mut(2 * N_PARAMS))
+            .zip(points.par_chunks(3))
+            .for_each(|(((px, dp), dc), x)| {
+                if let Some(j) = cam.project_jacobian(&Vector3::new(x[0], x[1], x[2])) {
+                    px[0] = j.pixel.x;
+                    px[1] = j.pixel.y;
+                    for a in 0..2 {
+                        for b in 0..3 {
+                            dp[a * 3 + b] = j.d_point[(a, b)];
+                        }
+                        for b in 0..N_PARAMS {
+                            dc[a * N_PARAMS + b] = j.d_params[(a, b)];
+                        }
+                    }
+                }
+            });
+    }
+    Ok(ProjectedJacobians {
+        pixels,
+        d_point,
+        d_params,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    pub(crate) fn test_camera() -> Camera {
+        Camera::from_params(&[
+            0.1, -0.2, 0.05, 0.3, -0.1, 2.5, 1200.0, 1180.0, 640.0, 512.0, -0.21, 0.08, 0.001,
+            -0.0015, 0.01,
+        ])
+        .unwrap()
+    }
+
+    #[test]
+    fn pinhole_without_distortion() {
+        let cam = Camera::from_params(&[
+            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1000.0, 900.0, 320.0, 240.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        ])
+        .unwrap();
+        let uv = cam.project(&Vector3::new(0.2, -0.1, 2.0)).unwrap();
+        assert!((uv - Vector2::new(320.0 + 100.0, 240.0 - 45.0)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn radial_distortion_matches_eq5() {
+        // Paper's model: (x/z)(1 + k1 c + k2 c²), c = (x/z)² + (y/z)².
+        let (k1, k2) = (-0.3, 0.12);
+        let cam = Camera::from_params(&[
+            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1000.0, 1000.0, 0.0, 0.0, k1, k2, 0.0, 0.0, 0.0,
+        ])
+        .unwrap();
+        let (x, y, z) = (0.4, 0.3, 1.0);
+        let c = (x / z) * (x / z) + (y / z) * (y / z);
+        let f = 1.0 + k1 * c + k2 * c * c;
+        let uv = cam.project(&Vector3::new(x, y, z)).unwrap();
+        assert!((uv - Vector2::new(1000.0 * x / z * f, 1000.0 * y / z * f)).norm() < 1e-10);
+    }
+
+    #[test]
+    fn behind_camera_is_reported() {
+        let cam = test_camera();
+        let behind = cam.rotation().transpose() * (Vector3::new(0.0, 0.0, -1.0) - cam.translation());
+        assert!(cam.project(&behind).is_none());
+        assert!(cam.project_jacobian(&behind).is_none());
+        let proj = project_points(&[cam], &[behind.x, behind.y, behind.z]).unwrap();
+        assert!(proj.pixels[0].is_nan() && !proj.in_front[0]);
+    }
+
+    #[test]
+    fn jacobians_match_central_differences() {
+        let cam = test_camera();
+        let x = Vector3::new(0.15, 0.2, 0.4);
+        let j = cam.project_jacobian(&x).unwrap();
+        let h = 1e-6;
+        for k in 0..3 {
+            let mut xp = x;
+            let mut xm = x;
+            xp[k] += h;
+            xm[k] -= h;
+            let fd = (cam.project(&xp).unwrap() - cam.project(&xm).unwrap()) / (2.0 * h);
+            assert!((fd - j.d_point.column(k)).norm() < 1e-5 * (1.0 + fd.norm()), "point {k}");
+        }
+        for k in 0..N_PARAMS {
+            let mut pp = *cam.params();
+            let mut pm = *cam.params();
+            let step = h * (1.0 + pp[k].abs());
+            pp[k] += step;
+            pm[k] -= step;
+            let fd = (Camera::from_params(&pp).unwrap().project(&x).unwrap()
+                - Camera::from_params(&pm).unwrap().project(&x).unwrap())
+                / (2.0 * step);
+            let an = j.d_params.column(k);
+            assert!((fd - an).norm() < 1e-5 * (1.0 + fd.norm()), "param {k}: {fd} vs {an}");
+        }
+    }
+
+    #[test]
+    fn batch_layout_and_errors() {
+        let cams = vec![test_camera(), test_camera()];
+        let pts = [0.1, 0.0, 0.3, -0.2, 0.1, 0.0];
+        let proj = project_points_jacobian(&cams, &pts).unwrap();
+        let single = cams[1].project_jacobian(&Vector3::new(-0.2, 0.1, 0.0)).unwrap();
+        // camera 1, point 1
+        assert_eq!(proj.pixels[(2 + 1) * 2 + 1], single.pixel.y);
+        assert_eq!(proj.d_point[(2 + 1) * 6 + 5], single.d_point[(1, 2)]);
+        assert_eq!(proj.d_params[((2 + 1) * 2 + 1) * N_PARAMS + 14], single.d_params[(1, 14)]);
+        assert!(matches!(project_points(&cams, &pts[..4]), Err(AcmError::Shape(_))));
+        assert!(matches!(
+            project_points(&cams, &[f64::NAN, 0.0, 1.0]),
+            Err(AcmError::NonFinite(_))
+        ));
+        let mut bad = *cams[0].params();
+        bad[param::FX] = -1.0;
+        assert!(matches!(Camera::from_params(&bad), Err(AcmError::Invalid(_))));
+        assert!(matches!(Camera::many_from_params(&bad[..14]), Err(AcmError::Shape(_))));
+    }
+
+    #[test]
+    fn center_is_mapped_to_origin() {
+        let cam = test_camera();
+        assert!(cam.to_camera(&cam.center()).norm() < 1e-12);
+    }
+}

@@ -1,0 +1,972 @@
+//! Skeleton model and forward kinematics (ACM supp. section 3.1, Alg. 1, eq. 8) with exact
+//! Jacobians with respect to the pose `(t, r)`, the bone lengths `l` and the marker offsets `v`.
+//!
+//! # Conventions
+//! * Joints form a tree with one root; bone `b` ends at the `b`-th non-root joint (in joint
+//!   order) and starts at that joint's parent.
+//! * Each bone has a rest orientation `R̄_b` (columns = bone axes in world coordinates) whose
+//!   z-axis points along the bone, a length `l_b`, and a Rodrigues vector `r_b`.
+//! * Alg. 1: the rotation of bone `i` acts on every bone whose end joint is a descendant of
+//!   `i`'s start joint (so also on the bones that share `i`'s start joint). Rotations are
+//!   applied root→leaf through transposes (eq. 8), i.e. the global orientation of bone `j` is
+//!   `R_j = Q_{a1} Q_{a2} … Q_{ak} R̄_j` with `Q = f_{r→R}(r)` over the acting bones in bone
+//!   order. Among bones that share a start joint, the lower index is applied first (outermost).
+//! * A marker attached to joint `j` moves rigidly with the bone that ends at `j`:
+//!   `m = p_j + R_b v` (Alg. 1, line 15). Markers attached to the root move with the global
+//!   translation and the first bone that starts at the root.
+
+use crate::error::{ensure_finite, ensure_len, AcmError, Result};
+use crate::rotation::{left_jacobian, rodrigues};
+use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
+
+/// A kinematic tree with rest geometry, bone lengths and marker offsets.
+#[derive(Debug, Clone)]
+pub struct Skeleton {
+    parents: Vec<Option<usize>>,
+    root: usize,
+    bones: Vec<(usize, usize)>,
+    bone_of_end: Vec<Option<usize>>,
+    rest_frames: Vec<Matrix3<f64>>,
+    lengths: Vec<f64>,
+    marker_joints: Vec<usize>,
+    offsets: Vec<Vector3<f64>>,
+    // Derived structure.
+    order: Vec<usize>,
+    out_bones: Vec<Vec<usize>>,
+    marker_bone: Vec<usize>,
+    /// `anc[a * J + b]`: joint `a` is an ancestor of joint `b` or `a == b`.
+    anc: Vec<bool>,
+}
+
+/// Joint and marker positions of one frame plus the bone orientations they came from.
+#[derive(Debug, Clone)]
+pub struct FkResult {
+    /// Joint positions `p` (J).
+    pub joints: Vec<Vector3<f64>>,
+    /// Marker positions `m` (M).
+    pub markers: Vec<Vector3<f64>>,
+    /// Global bone orientations `R_b = P_{start(b)} R̄_b` (n_bones).
+    pub bone_rotations: Vec<Matrix3<f64>>,
+    /// Accumulated rotation `P_a` at each joint (product of the rotations of every bone that
+    /// starts at `a` or at one of its ancestors).
+    joint_rotations: Vec<Matrix3<f64>>,
+}
+
+/// Exact derivatives of joint and marker positions (rows `[joints (3J), markers (3M)]`).
+#[derive(Debug, Clone)]
+pub struct FkJacobian {
+    /// Forward kinematics at the evaluation point.
+    pub fk: FkResult,
+    /// `(3J + 3M) × (3 + 3 n_bones)` row-major: derivatives w.r.t. `[t, r_0, r_1, …]`.
+    pub d_pose: Vec<f64>,
+    /// `(3J + 3M) × n_bones` row-major: derivatives w.r.t. the bone lengths.
+    pub d_lengths: Vec<f64>,
+    /// `(M, 3, 3)` row-major: `∂m_k/∂v_k = R_{b(k)}` (markers depend only on their own offset).
+    pub d_offsets: Vec<f64>,
+}
+
+/// Orthonormal bone frame with its z-axis along `dir` and its y-axis as close as possible to
+/// `up` (x = y × z). Falls back to `fallback_up` when `dir` is parallel to `up`.
+///
+/// With `up` in the sagittal plane this construction is mirror-consistent: mirroring a bone at
+/// the sagittal plane mirrors the x-component of every offset in its frame (Alg. 3).
+pub fn frame_from_direction(
+    dir: &Vector3<f64>,
+    up: &Vector3<f64>,
+    fallback_up: Option<&Vector3<f64>>,
+) -> Result<Matrix3<f64>> {
+    let n = dir.norm();
+    if n <= 1e-12 || !n.is_finite() {
+        return Err(AcmError::Invalid(
+            "bone of zero length has no direction".into(),
+        ));
+    }
+    let z = dir / n;
+    let mut y = up - z * up.dot(&z);
+    if y.norm() < 1e-6 {
+        if let Some(f) = fallback_up {
+            y = f - z * f.dot(&z);
+        }
+    }
+    if y.norm() < 1e-6 {
+        return Err(AcmError::Invalid(
+            "bone is parallel to the up vector and no fallback frame is available".into(),
+        ));
+    }
+    let y = y.normalize();
+    let x = y.cross(&z);
+    Ok(Matrix3::from_columns(&[x, y, z]))
+}
+
+fn check_rotation(m: &Matrix3<f64>, what: &str) -> Result<()> {
+    ensure_finite(m.as_slice(), what)?;
+    let err = (m.transpose() * m - Matrix3::identity()).abs().max();
+    if err > 1e-6 || m.determinant() < 0.0 {
+        return Err(AcmError::Invalid(format!(
+            "{what} is not a proper rotation (max |R^T R - I| = {err:.2e})"
+        )));
+    }
+    Ok(())
+}
+
+impl Skeleton {
+    /// Builds a skeleton from its tree, rest frames, lengths and marker offsets.
+    ///
+    /// # Arguments
+    /// * `parents` - parent joint index per joint, `-1` for the single root.
+    /// * `rest_frames` - one rest orientation `R̄_b` per bone (z-axis along the bone).
+    /// * `lengths` - bone lengths `l` (> 0), one per bone.
+    /// * `marker_joints` - joint each marker is attached to.
+    /// * `offsets` - marker offsets `v` in the frame of the bone ending at that joint.
+    ///
+    /// # Errors
+    /// Invalid error for a parent list that is not a tree with one root, an out-of-range
+    /// joint index, non-rotation frames or non-positive lengths; shape errors for
+    /// inconsistent lengths; non-finite errors for NaN/inf.
+    pub fn new(
+        parents: &[i64],
+        rest_frames: Vec<Matrix3<f64>>,
+        lengths: Vec<f64>,
+        marker_joints: Vec<usize>,
+        offsets: Vec<Vector3<f64>>,
+    ) -> Result<Self> {
+        let (parents, root, order) = validate_tree(parents)?;
+        let n_j = parents.len();
+        let n_b = n_j - 1;
+        let mut bones = Vec::with_capacity(n_b);
+        let mut bone_of_end = vec![None; n_j];
+        for (j, p) in parents.iter().enumerate() {
+            if let Some(p) = p {
+                bone_of_end[j] = Some(bones.len());
+                bones.push((*p, j));
+            }
+        }
+        ensure_len(rest_frames.len(), n_b, "rest frames (one per bone)")?;
+        ensure_len(lengths.len(), n_b, "bone lengths")?;
+        ensure_len(offsets.len(), marker_joints.len(), "marker offsets")?;
+        for (b, f) in rest_frames.iter().enumerate() {
+            check_rotation(f, &format!("rest frame of bone {b}"))?;
+        }
+        validate_lengths(&lengths)?;
+        let mut out_bones = vec![Vec::new(); n_j];
+        for (b, &(s, _)) in bones.iter().enumerate() {
+            out_bones[s].push(b);
+        }
+        let first_root_bone = out_bones[root][0];
+        let mut marker_bone = Vec::with_capacity(marker_joints.len());
+        for (k, &j) in marker_joints.iter().enumerate() {
+            if j >= n_j {
+                return Err(AcmError::Invalid(format!(
+                    "marker {k} is attached to joint {j}, but there are only {n_j} joints"
+                )));
+            }
+            marker_bone.push(bone_of_end[j].unwrap_or(first_root_bone));
+        }
+        for v in &offsets {
+            ensure_finite(v.as_slice(), "marker offsets")?;
+        }
+        let mut anc = vec![false; n_j * n_j];
+        for b in 0..n_j {
+            let mut a = Some(b);
+            while let Some(x) = a {
+                anc[x * n_j + b] = true;
+                a = parents[x];
+            }
+        }
+        Ok(Self {
+            parents,
+            root,
+            bones,
+            bone_of_end,
+            rest_frames,
+            lengths,
+            marker_joints,
+            offsets,
+            order,
+            out_bones,
+            marker_bone,
+            anc,
+        })
+    }
+
+    /// Builds a skeleton from joint and marker positions of a rest pose (all rotations zero).
+    ///
+    /// Bone lengths are the joint distances; rest frames come from
+    /// [`frame_from_direction`] with `up` (falling back to the parent bone's y-axis) unless
+    /// `rest_frames` is given, in which case each frame's z-axis must point along its bone;
+    /// offsets are the marker positions relative to their joint, in the frame of the bone
+    /// that ends there.
+    ///
+    /// # Errors
+    /// As [`Skeleton::new`], plus invalid errors for zero-length bones and given frames whose
+    /// z-axis is not along the bone.
+    pub fn from_rest_pose(
+        parents: &[i64],
+        rest_joints: &[Vector3<f64>],
+        marker_joints: Vec<usize>,
+        marker_rest: &[Vector3<f64>],
+        up: &Vector3<f64>,
+        rest_frames: Option<Vec<Matrix3<f64>>>,
+    ) -> Result<Self> {
+        let (tree, _, order) = validate_tree(parents)?;
+        ensure_len(rest_joints.len(), tree.len(), "rest joint positions")?;
+        ensure_len(marker_rest.len(), marker_joints.len(), "rest marker positions")?;
+        for p in rest_joints.iter().chain(marker_rest.iter()) {
+            ensure_finite(p.as_slice(), "rest pose positions")?;
+        }
+        ensure_finite(up.as_slice(), "up vector")?;
+        let n_j = tree.len();
+        let mut bone_of_end = vec![None; n_j];
+        let mut ends = Vec::new();
+        for (j, p) in tree.iter().enumerate() {
+            if p.is_some() {
+                bone_of_end[j] = Some(ends.len());
+                ends.push(j);
+            }
+        }
+        let mut lengths = vec![0.0; ends.len()];
+        let mut frames = vec![Matrix3::identity(); ends.len()];
+        // Root-first so that the parent bone's frame is known for the fallback.
+        for &j in &order {
+            let Some(p) = tree[j] else { continue };
+            let b = bone_of_end[j].expect("non-root joint has a bone");
+            let d = rest_joints[j] - rest_joints[p];
+            lengths[b] = d.norm();
+            if lengths[b] <= 1e-12 {
+                return Err(AcmError::Invalid(format!(
+                    "bone {b} (joints {p}->{j}) has zero length in the rest pose"
+                )));
+            }
+            frames[b] = match &rest_frames {
+                Some(given) => {
+                    ensure_len(given.len(), ends.len(), "rest frames (one per bone)")?;
+                    let f = given[b];
+                    check_rotation(&f, &format!("rest frame of bone {b}"))?;
+                    if (f.column(2) - d / lengths[b]).norm() > 1e-6 {
+                        return Err(AcmError::Invalid(format!(
+                            "rest frame of bone {b} (joints {p}->{j}): its z-axis does not point \
+                             along the bone"
+                        )));
+                    }
+                    f
+                }
+                None => {
+                    let fallback = bone_of_end[p].map(|pb| frames[pb].column(1).into_owned());
+                    frame_from_direction(&d, up, fallback.as_ref()).map_err(|e| {
+                        AcmError::Invalid(format!("bone {b} (joints {p}->{j}): {e}"))
+                    })?
+                }
+            };
+        }
+        let root = tree.iter().position(|p| p.is_none()).expect("validated");
+        let first_root_bone = tree
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| **p == Some(root))
+            .map(|(j, _)| bone_of_end[j].expect("child has bone"))
+            .min()
+            .ok_or_else(|| AcmError::Invalid("the skeleton needs at least one bone".into()))?;
+        let mut offsets = Vec::with_capacity(marker_joints.len());
+        for (k, &j) in marker_joints.iter().enumerate() {
+            if j >= n_j {
+                return Err(AcmError::Invalid(format!(
+                    "marker {k} is attached to joint {j}, but there are only {n_j} joints"
+                )));
+            }
+            let b = bone_of_end[j].unwrap_or(first_root_bone);
+            offsets.push(frames[b].transpose() * (marker_rest[k] - rest_joints[j]));
+        }
+        Self::new(parents, frames, lengths, marker_joints, offsets)
+    }
+
+    /// Number of joints `J`.
+    pub fn n_joints(&self) -> usize {
+        self.parents.len()
+    }
+    /// Number of bones (`J − 1`).
+    pub fn n_bones(&self) -> usize {
+        self.bones.len()
+    }
+    /// Number of markers `M`.
+    pub fn n_markers(&self) -> usize {
+        self.marker_joints.len()
+    }
+    /// Length of the full pose vector `[t (3), r (3 n_bones)]`.
+    pub fn n_pose(&self) -> usize {
+        3 + 3 * self.bones.len()
+    }
+    /// Index of the root joint.
+    pub fn root(&self) -> usize {
+        self.root
+    }
+    /// Parent of each joint (`None` for the root).
+    pub fn parents(&self) -> &[Option<usize>] {
+        &self.parents
+    }
+    /// `(start, end)` joint of each bone.
+    pub fn bones(&self) -> &[(usize, usize)] {
+        &self.bones
+    }
+    /// Bone ending at each joint (`None` for the root).
+    pub fn bone_of_end(&self) -> &[Option<usize>] {
+        &self.bone_of_end
+    }
+    /// Rest orientations `R̄`.
+    pub fn rest_frames(&self) -> &[Matrix3<f64>] {
+        &self.rest_frames
+    }
+    /// Bone lengths `l`.
+    pub fn lengths(&self) -> &[f64] {
+        &self.lengths
+    }
+    /// Joint each marker is attached to.
+    pub fn marker_joints(&self) -> &[usize] {
+        &self.marker_joints
+    }
+    /// Bone whose frame each marker's offset is expressed in.
+    pub fn marker_bones(&self) -> &[usize] {
+        &self.marker_bone
+    }
+    /// Marker offsets `v` (bone frame).
+    pub fn offsets(&self) -> &[Vector3<f64>] {
+        &self.offsets
+    }
+    /// Whether joint `a` is an ancestor of joint `b` (or `a == b`).
+    pub fn is_ancestor_or_self(&self, a: usize, b: usize) -> bool {
+        self.anc[a * self.parents.len() + b]
+    }
+    /// `[i, j]`: the rotation of bone `i` moves bone `j` (the authors' `skeleton_vertices_links`).
+    pub fn bone_links(&self) -> Vec<bool> {
+        let n = self.bones.len();
+        let mut out = vec![false; n * n];
+        for (i, &(si, _)) in self.bones.iter().enumerate() {
+            for (j, &(sj, _)) in self.bones.iter().enumerate() {
+                out[i * n + j] = self.is_ancestor_or_self(si, sj);
+            }
+        }
+        out
+    }
+
+    fn check_overrides(&self, lengths: Option<&[f64]>, offsets: Option<&[Vector3<f64>]>) -> Result<()> {
+        if let Some(l) = lengths {
+            ensure_len(l.len(), self.n_bones(), "bone lengths")?;
+            validate_lengths(l)?;
+        }
+        if let Some(v) = offsets {
+            ensure_len(v.len(), self.n_markers(), "marker offsets")?;
+            for x in v {
+                ensure_finite(x.as_slice(), "marker offsets")?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Forward kinematics of one pose (Alg. 1), using the skeleton's own lengths/offsets
+    /// unless overrides are given.
+    ///
+    /// # Arguments
+    /// * `t` - global translation = root joint position (world units).
+    /// * `r` - one Rodrigues vector per bone (rad).
+    ///
+    /// # Errors
+    /// Shape errors for wrong counts, non-finite errors for NaN/inf, invalid errors for
+    /// non-positive lengths.
+    pub fn forward(
+        &self,
+        t: &Vector3<f64>,
+        r: &[Vector3<f64>],
+        lengths: Option<&[f64]>,
+        offsets: Option<&[Vector3<f64>]>,
+    ) -> Result<FkResult> {
+        ensure_len(r.len(), self.n_bones(), "bone rotations")?;
+        ensure_finite(t.as_slice(), "translation")?;
+        for x in r {
+            ensure_finite(x.as_slice(), "bone rotations")?;
+        }
+        self.check_overrides(lengths, offsets)?;
+        Ok(self.forward_unchecked(t, r, lengths.unwrap_or(&self.lengths), offsets.unwrap_or(&self.offsets)))
+    }
+
+    /// Forward kinematics without input validation (hot path of batch code that validated
+    /// once).
+    pub fn forward_unchecked(
+        &self,
+        t: &Vector3<f64>,
+        r: &[Vector3<f64>],
+        lengths: &[f64],
+        offsets: &[Vector3<f64>],
+    ) -> FkResult {
+        let n_j = self.n_joints();
+        let mut joint_rot = vec![Matrix3::identity(); n_j];
+        let mut joints = vec![Vector3::zeros(); n_j];
+        let mut bone_rot = vec![Matrix3::identity(); self.n_bones()];
+        joints[self.root] = *t;
+        for &a in &self.order {
+            // Alg. 1 lines 3-6 and eq. 8: P_a = P_parent · Q_{b1} Q_{b2} … over bones starting
+            // at a, in bone order.
+            let mut p = match self.parents[a] {
+                Some(par) => joint_rot[par],
+                None => Matrix3::identity(),
+            };
+            for &b in &self.out_bones[a] {
+                p *= rodrigues(&r[b]);
+            }
+            joint_rot[a] = p;
+            if let Some(b) = self.bone_of_end[a] {
+                // Alg. 1 lines 8 and 11: R_b = P_start R̄_b, p_end = p_start + R_b e_z l_b.
+                let start = self.bones[b].0;
+                let rb: Matrix3<f64> = joint_rot[start] * self.rest_frames[b];
+                joints[a] = joints[start] + rb.column(2) * lengths[b];
+                bone_rot[b] = rb;
+            }
+        }
+        // Alg. 1 line 15: m_k = p_j + R_b v_k.
+        let markers = self
+            .marker_joints
+            .iter()
+            .zip(&self.marker_bone)
+            .zip(offsets)
+            .map(|((&j, &b), v)| joints[j] + bone_rot[b] * v)
+            .collect();
+        FkResult {
+            joints,
+            markers,
+            bone_rotations: bone_rot,
+            joint_rotations: joint_rot,
+        }
+    }
+
+    /// Forward kinematics with exact Jacobians with respect to `t`, `r`, `l` and `v`.
+    ///
+    /// The derivative of a point `x` moved by bone `i` with respect to `r_i,k` is
+    /// `w_ik × (x − p_{start(i)})` with the world-frame axis `w_ik = A_i J_l(r_i) e_k`, where
+    /// `A_i` is the accumulated rotation applied before `Q_i` and `J_l` the left Jacobian of
+    /// SO(3) (exact; no finite differences).
+    ///
+    /// # Errors
+    /// As [`Skeleton::forward`].
+    pub fn forward_jacobian(
+        &self,
+        t: &Vector3<f64>,
+        r: &[Vector3<f64>],
+        lengths: Option<&[f64]>,
+        offsets: Option<&[Vector3<f64>]>,
+    ) -> Result<FkJacobian> {
+        let fk = self.forward(t, r, lengths, offsets)?;
+        let n_j = self.n_joints();
+        let n_m = self.n_markers();
+        let n_b = self.n_bones();
+        let rows = 3 * (n_j + n_m);
+        let cols = self.n_pose();
+        let mut d_pose = vec![0.0; rows * cols];
+        let mut d_lengths = vec![0.0; rows * n_b];
+        let mut d_offsets = vec![0.0; n_m * 9];
+
+        // Translation: identity for every point.
+        for p in 0..(n_j + n_m) {
+            for a in 0..3 {
+                d_pose[(3 * p + a) * cols + a] = 1.0;
+            }
+        }
+        // Which bone's orientation moves each point (None: the root joint, moved only by t).
+        let point_bone: Vec<Option<usize>> = (0..n_j)
+            .map(|j| self.bone_of_end[j])
+            .chain(self.marker_bone.iter().map(|&b| Some(b)))
+            .collect();
+        let point_pos: Vec<&Vector3<f64>> = fk.joints.iter().chain(fk.markers.iter()).collect();
+        // Rotations.
+        for (i, &(si, _)) in self.bones.iter().enumerate() {
+            let mut before = match self.parents[si] {
+                Some(par) => fk.joint_rotations[par],
+                None => Matrix3::identity(),
+            };
+            for &s in &self.out_bones[si] {
+                if s == i {
+                    break;
+                }
+                before *= rodrigues(&r[s]);
+            }
+            let w = before * left_jacobian(&r[i]);
+            let pivot = fk.joints[si];
+            for (p, pb) in point_bone.iter().enumerate() {
+                let Some(pb) = pb else { continue };
+                if !self.is_ancestor_or_self(si, self.bones[*pb].0) {
+                    continue;
+                }
+                let rel = point_pos[p] - pivot;
+                for k in 0..3 {
+                    let d = w.column(k).cross(&rel);
+                    for a in 0..3 {
+                        d_pose[(3 * p + a) * cols + 3 + 3 * i + k] = d[a];
+                    }
+                }
+            }
+        }
+        // Bone lengths: points at or below the bone's end joint move along its axis.
+        for (b, &(_, eb)) in self.bones.iter().enumerate() {
+            let axis = fk.bone_rotations[b].column(2);
+            let target = |j: usize| self.is_ancestor_or_self(eb, j);
+            for j in (0..n_j).filter(|&j| target(j)) {
+                for a in 0..3 {
+                    d_lengths[(3 * j + a) * n_b + b] = axis[a];
+                }
+            }
+            for (k, &j) in self.marker_joints.iter().enumerate() {
+                if target(j) {
+                    for a in 0..3 {
+                        d_lengths[(3 * (n_j + k) + a) * n_b + b] = axis[a];
+                    }
+                }
+            }
+        }
+        // Offsets.
+        for (k, &b) in self.marker_bone.iter().enumerate() {
+            crate::rotation::write_row_major(&fk.bone_rotations[b], &mut d_offsets[9 * k..9 * k + 9]);
+        }
+        Ok(FkJacobian {
+            fk,
+            d_pose,
+            d_lengths,
+            d_offsets,
+        })
+    }
+
+    /// Forward kinematics of `T` poses in parallel.
+    ///
+    /// # Arguments
+    /// * `t` - `(T, 3)` flat translations.
+    /// * `r` - `(T, n_bones, 3)` flat Rodrigues vectors.
+    /// * `lengths`, `offsets` - optional overrides, shared by all frames (`(n_bones,)`,
+    ///   `(M, 3)` flat).
+    ///
+    /// # Returns
+    /// `(joints (T, J, 3), markers (T, M, 3))`, flat row-major.
+    ///
+    /// # Errors
+    /// Shape errors for inconsistent sizes, non-finite errors naming the first bad frame.
+    pub fn forward_batch(
+        &self,
+        t: &[f64],
+        r: &[f64],
+        lengths: Option<&[f64]>,
+        offsets: Option<&[f64]>,
+    ) -> Result<(Vec<f64>, Vec<f64>)> {
+        if t.len() % 3 != 0 {
+            return Err(AcmError::Shape(format!(
+                "translations: {} values is not a multiple of 3",
+                t.len()
+            )));
+        }
+        let n_t = t.len() / 3;
+        ensure_len(r.len(), n_t * 3 * self.n_bones(), "rotations (T, n_bones, 3)")?;
+        if let Some(i) = t.iter().chain(r.iter()).position(|v| !v.is_finite()) {
+            let frame = if i < t.len() { i / 3 } else { (i - t.len()) / (3 * self.n_bones()) };
+            return Err(AcmError::NonFinite(format!(
+                "pose of frame {frame} contains NaN or infinity"
+            )));
+        }
+        let offsets_v: Option<Vec<Vector3<f64>>> = match offsets {
+            Some(o) => {
+                ensure_len(o.len(), 3 * self.n_markers(), "marker offsets (M, 3)")?;
+                Some(o.chunks(3).map(|c| Vector3::new(c[0], c[1], c[2])).collect())
+            }
+            None => None,
+        };
+        self.check_overrides(lengths, offsets_v.as_deref())?;
+        let l = lengths.unwrap_or(&self.lengths);
+        let v = offsets_v.as_deref().unwrap_or(&self.offsets);
+        let (n_j, n_m, n_b) = (self.n_joints(), self.n_markers(), self.n_bones());
+        let mut joints = vec![0.0; n_t * n_j * 3];
+        let mut markers = vec![0.0; n_t * n_m * 3];
+        joints
+            .par_chunks_mut(n_j * 3)
+            .zip(markers.par_chunks_mut((n_m * 3).max(1)))
+            .enumerate()
+            .for_each(|(f, (jo, mo))| {
+                let tv = Vector3::new(t[3 * f], t[3 * f + 1], t[3 * f + 2]);
+                let rv: Vec<Vector3<f64>> = r[f * 3 * n_b..(f + 1) * 3 * n_b]
+                    .chunks(3)
+                    .map(|c| Vector3::new(c[0], c[1], c[2]))
+                    .collect();
+                let fk = self.forward_unchecked(&tv, &rv, l, v);
+                for (dst, p) in jo.chunks_mut(3).zip(&fk.joints) {
+                    dst.copy_from_slice(p.as_slice());
+                }
+                for (dst, m) in mo.chunks_mut(3).zip(&fk.markers) {
+                    dst.copy_from_slice(m.as_slice());
+                }
+            });
+        Ok((joints, markers))
+    }
+}
+
+fn validate_lengths(lengths: &[f64]) -> Result<()> {
+    ensure_finite(lengths, "bone lengths")?;
+    if let Some(b) = lengths.iter().position(|&l| l <= 0.0) {
+        return Err(AcmError::Invalid(format!(
+            "bone lengths must be positive, bone {b} has {}",
+            lengths[b]
+        )));
+    }
+    Ok(())
+}
+
+/// Checks that `parents` describes one tree; returns the parent options, the root and a
+/// root-first (breadth-first) joint order.
+fn validate_tree(parents: &[i64]) -> Result<(Vec<Option<usize>>, usize, Vec<usize>)> {
+    let n = parents.len();
+    if n < 2 {
+        return Err(AcmError::Invalid(format!(
+            "a skeleton needs at least 2 joints (one bone), got {n}"
+        )));
+    }
+    let mut out = Vec::with_capacity(n);
+    for (j, &p) in parents.iter().enumerate() {
+        if p == -1 {
+            out.push(None);
+        } else if p < 0 || p as usize >= n {
+            return Err(AcmError::Invalid(format!(
+                "joint {j} has parent {p}, which is not a joint index (0..{n}) or -1 for the root"
+            )));
+        } else if p as usize == j {
+            return Err(AcmError::Invalid(format!("joint {j} is its own parent")));
+        } else {
+            out.push(Some(p as usize));
+        }
+    }
+    let roots: Vec<usize> = (0..n).filter(|&j| out[j].is_none()).collect();
+    if roots.len() != 1 {
+        return Err(AcmError::Invalid(format!(
+            "a skeleton needs exactly one root (parent -1), found {} ({roots:?})",
+            roots.len()
+        )));
+    }
+    let root = roots[0];
+    let mut children = vec![Vec::new(); n];
+    for (j, p) in out.iter().enumerate() {
+        if let Some(p) = p {
+            children[*p].push(j);
+        }
+    }
+    let mut order = Vec::with_capacity(n);
+    order.push(root);
+    let mut head = 0;
+    while head < order.len() {
+        let a = order[head];
+        head += 1;
+        order.extend_from_slice(&children[a]);
+    }
+    if order.len() != n {
+        let mut seen = vec![false; n];
+        for &j in &order {
+            seen[j] = true;
+        }
+        let cyc: Vec<usize> = (0..n).filter(|&j| !seen[j]).collect();
+        return Err(AcmError::Invalid(format!(
+            "parents do not form a tree: joints {cyc:?} are not connected to the root (cycle)"
+        )));
+    }
+    Ok((out, root, order))
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A small branching skeleton: root 0 → 1 → {2 → 3, 4 → 5}, plus 0 → 6.
+    pub(crate) fn branching() -> Skeleton {
+        let parents = [-1, 0, 1, 2, 1, 4, 0];
+        let rest = [
+            Vector3::new(0.0, 0.0, 0.0),
+            Vector3::new(0.0, 0.0, 2.0),
+            Vector3::new(-1.0, -0.5, 2.0),
+            Vector3::new(-1.0, -0.5, 3.0),
+            Vector3::new(1.0, -0.5, 2.0),
+            Vector3::new(1.0, -0.5, 3.2),
+            Vector3::new(0.0, 0.3, -1.0),
+        ];
+        let marker_joints = vec![0, 1, 3, 5, 2, 6];
+        let marker_rest = [
+            Vector3::new(0.1, 0.2, -0.1),
+            Vector3::new(0.0, 0.4, 1.9),
+            Vector3::new(-1.2, -0.4, 3.1),
+            Vector3::new(1.1, -0.6, 3.3),
+            Vector3::new(-0.9, -0.2, 2.2),
+            Vector3::new(0.1, 0.5, -1.2),
+        ];
+        Skeleton::from_rest_pose(
+            &parents,
+            &rest,
+            marker_joints,
+            &marker_rest,
+            &Vector3::y(),
+            None,
+        )
+        .unwrap()
+    }
+
+    fn rest_positions() -> Vec<Vector3<f64>> {
+        vec![
+            Vector3::new(0.0, 0.0, 0.0),
+            Vector3::new(0.0, 0.0, 2.0),
+            Vector3::new(-1.0, -0.5, 2.0),
+            Vector3::new(-1.0, -0.5, 3.0),
+            Vector3::new(1.0, -0.5, 2.0),
+            Vector3::new(1.0, -0.5, 3.2),
+            Vector3::new(0.0, 0.3, -1.0),
+        ]
+    }
+
+    fn pose(seed: u64, scale: f64, n: usize) -> (Vector3<f64>, Vec<Vector3<f64>>) {
+        // Small deterministic pseudo-random generator (LCG) for reproducible poses.
+        let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let mut next = || {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((s >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+        };
+        let t = Vector3::new(next(), next(), next());
+        let r = (0..n).map(|_| Vector3::new(next(), next(), next()) * scale).collect();
+        (t, r)
+    }
+
+    #[test]
+    fn zero_rotation_gives_rest_pose() {
+        let sk = branching();
+        let r = vec![Vector3::zeros(); sk.n_bones()];
+        let fk = sk.forward(&Vector3::zeros(), &r, None, None).unwrap();
+        for (a, b) in fk.joints.iter().zip(rest_positions()) {
+            assert!((a - b).norm() < 1e-12);
+        }
+        let expect_markers = [
+            Vector3::new(0.1, 0.2, -0.1),
+            Vector3::new(0.0, 0.4, 1.9),
+            Vector3::new(-1.2, -0.4, 3.1),
+            Vector3::new(1.1, -0.6, 3.3),
+            Vector3::new(-0.9, -0.2, 2.2),
+            Vector3::new(0.1, 0.5, -1.2),
+        ];
+        for (a, b) in fk.markers.iter().zip(expect_markers) {
+            assert!((a - b).norm() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn root_rotation_moves_everything_rigidly() {
+        let sk = branching();
+        // The root has bones 0 (→1) and 5 (→6); Alg. 1 applies Q_0 Q_5 to every bone, so
+        // rotating bone 0 alone rotates the whole body rigidly about the root.
+        let mut r = vec![Vector3::zeros(); sk.n_bones()];
+        let rv = Vector3::new(0.3, -0.7, 0.2);
+        r[0] = rv;
+        let t = Vector3::new(1.0, 2.0, 3.0);
+        let fk = sk.forward(&t, &r, None, None).unwrap();
+        let rest = sk.forward(&Vector3::zeros(), &vec![Vector3::zeros(); sk.n_bones()], None, None).unwrap();
+        let q = rodrigues(&rv);
+        for (a, b) in fk.joints.iter().zip(&rest.joints).chain(fk.markers.iter().zip(&rest.markers)) {
+            assert!((a - (t + q * b)).norm() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn alg1_order_and_sibling_links() {
+        let sk = branching();
+        // Bone indices: 0: 0→1, 1: 1→2, 2: 2→3, 3: 1→4, 4: 4→5, 5: 0→6.
+        let mut r = vec![Vector3::zeros(); sk.n_bones()];
+        r[0] = Vector3::new(0.2, 0.1, -0.3);
+        r[1] = Vector3::new(-0.4, 0.5, 0.1);
+        r[2] = Vector3::new(0.3, 0.3, 0.3);
+        r[3] = Vector3::new(0.1, -0.2, 0.6);
+        let fk = sk.forward(&Vector3::zeros(), &r, None, None).unwrap();
+        let q: Vec<Matrix3<f64>> = r.iter().map(rodrigues).collect();
+        // Bone 2 (2→3) is acted on by bones starting at 0, 1 and 2, in bone order:
+        // R = Q0 Q5 Q1 Q3 Q2 R̄ (eq. 8), including the sibling bone 3 (1→4).
+        let expect = q[0] * q[5] * q[1] * q[3] * q[2] * sk.rest_frames()[2];
+        assert!((fk.bone_rotations[2] - expect).norm() < 1e-12);
+        // Bone 1 (1→2) is not moved by bone 2 (starts below it).
+        let expect1 = q[0] * q[5] * q[1] * q[3] * sk.rest_frames()[1];
+        assert!((fk.bone_rotations[1] - expect1).norm() < 1e-12);
+        // Bone-link matrix as the authors' skeleton_vertices_links.
+        let links = sk.bone_links();
+        let n = sk.n_bones();
+        assert!(links[3 * n + 1]); // sibling at joint 1
+        assert!(!links[2 * n + 1]);
+        assert!(links[n + 4]);
+        assert!(links[5 * n + 5]);
+    }
+
+    #[test]
+    fn fk_matches_naive_alg1() {
+        // A literal transcription of Alg. 1 (loops over bone pairs) agrees with the tree
+        // recursion used by `forward_unchecked`.
+        let sk = branching();
+        let (t, r) = pose(7, 0.8, sk.n_bones());
+        let fk = sk.forward(&t, &r, None, None).unwrap();
+        let n_b = sk.n_bones();
+        let bones = sk.bones();
+        // Alg. 1 assumes bones sorted root-first; sort by the depth of the start joint
+        // (stable, so bones sharing a start joint keep their index order).
+        let depth = |mut a: usize| {
+            let mut d = 0;
+            while let Some(p) = sk.parents()[a] {
+                a = p;
+                d += 1;
+            }
+            d
+        };
+        let mut sorted: Vec<usize> = (0..n_b).collect();
+        sorted.sort_by_key(|&b| depth(bones[b].0));
+        assert_ne!(sorted, (0..n_b).collect::<Vec<_>>(), "test needs a non-trivial order");
+        let mut rot = vec![Matrix3::identity(); n_b];
+        for &i in &sorted {
+            for &j in &sorted {
+                // "if j_1 is child of i_0": i's start joint is a proper ancestor of j's end.
+                if sk.is_ancestor_or_self(bones[i].0, bones[j].1) && bones[i].0 != bones[j].1 {
+                    rot[j] = rodrigues(&r[i]).transpose() * rot[j];
+                }
+            }
+        }
+        let mut p = vec![Vector3::zeros(); sk.n_joints()];
+        p[sk.root()] = t;
+        let mut done = vec![false; n_b];
+        // Bones are not necessarily root-first by index here; iterate until all placed.
+        while done.iter().any(|d| !d) {
+            for j in 0..n_b {
+                let (s, e) = bones[j];
+                let placed = s == sk.root() || sk.bone_of_end()[s].map(|b| done[b]).unwrap_or(true);
+                if !done[j] && placed {
+                    let rj = rot[j].transpose() * sk.rest_frames()[j];
+                    p[e] = p[s] + rj.column(2) * sk.lengths()[j];
+                    done[j] = true;
+                }
+            }
+        }
+        for (a, b) in fk.joints.iter().zip(&p) {
+            assert!((a - b).norm() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn jacobian_matches_central_differences() {
+        let sk = branching();
+        let (t, r) = pose(3, 0.9, sk.n_bones());
+        let lengths: Vec<f64> = sk.lengths().iter().map(|l| l * 1.1).collect();
+        let offsets: Vec<Vector3<f64>> = sk.offsets().iter().map(|v| v * 0.9).collect();
+        let jac = sk.forward_jacobian(&t, &r, Some(&lengths), Some(&offsets)).unwrap();
+        let flat = |fk: &FkResult| -> Vec<f64> {
+            fk.joints.iter().chain(fk.markers.iter()).flat_map(|p| [p.x, p.y, p.z]).collect()
+        };
+        let rows = 3 * (sk.n_joints() + sk.n_markers());
+        let h = 1e-6;
+        let cols = sk.n_pose();
+        for c in 0..cols {
+            let mut tp = t;
+            let mut tm = t;
+            let mut rp = r.clone();
+            let mut rm = r.clone();
+            if c < 3 {
+                tp[c] += h;
+                tm[c] -= h;
+            } else {
+                rp[(c - 3) / 3][(c - 3) % 3] += h;
+                rm[(c - 3) / 3][(c - 3) % 3] -= h;
+            }
+            let fp = flat(&sk.forward(&tp, &rp, Some(&lengths), Some(&offsets)).unwrap());
+            let fm = flat(&sk.forward(&tm, &rm, Some(&lengths), Some(&offsets)).unwrap());
+            for row in 0..rows {
+                let fd = (fp[row] - fm[row]) / (2.0 * h);
+                let an = jac.d_pose[row * cols + c];
+                assert!((fd - an).abs() < 1e-7, "pose col {c} row {row}: fd {fd} an {an}");
+            }
+        }
+        for b in 0..sk.n_bones() {
+            let mut lp = lengths.clone();
+            let mut lm = lengths.clone();
+            lp[b] += h;
+            lm[b] -= h;
+            let fp = flat(&sk.forward(&t, &r, Some(&lp), Some(&offsets)).unwrap());
+            let fm = flat(&sk.forward(&t, &r, Some(&lm), Some(&offsets)).unwrap());
+            for row in 0..rows {
+                let fd = (fp[row] - fm[row]) / (2.0 * h);
+                let an = jac.d_lengths[row * sk.n_bones() + b];
+                assert!((fd - an).abs() < 1e-7, "length {b} row {row}");
+            }
+        }
+        for k in 0..sk.n_markers() {
+            for c in 0..3 {
+                let mut vp = offsets.clone();
+                let mut vm = offsets.clone();
+                vp[k][c] += h;
+                vm[k][c] -= h;
+                let mp = sk.forward(&t, &r, Some(&lengths), Some(&vp)).unwrap().markers[k];
+                let mm = sk.forward(&t, &r, Some(&lengths), Some(&vm)).unwrap().markers[k];
+                let fd = (mp - mm) / (2.0 * h);
+                for a in 0..3 {
+                    assert!((fd[a] - jac.d_offsets[9 * k + 3 * a + c]).abs() < 1e-7);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn invalid_trees_are_rejected() {
+        let f = |parents: &[i64]| {
+            let n = parents.len().saturating_sub(1);
+            Skeleton::new(parents, vec![Matrix3::identity(); n], vec![1.0; n], vec![], vec![])
+        };
+        assert!(matches!(f(&[-1, 0, 1]), Ok(_)));
+        assert!(matches!(f(&[-1, -1, 1]), Err(AcmError::Invalid(_))));
+        assert!(matches!(f(&[-1, 2, 1]), Err(AcmError::Invalid(_)))); // cycle 1↔2
+        assert!(matches!(f(&[-1, 5]), Err(AcmError::Invalid(_))));
+        assert!(matches!(f(&[0, 0]), Err(AcmError::Invalid(_)))); // self parent, no root
+        assert!(matches!(f(&[-1]), Err(AcmError::Invalid(_))));
+        let bad_len = Skeleton::new(&[-1, 0], vec![Matrix3::identity()], vec![0.0], vec![], vec![]);
+        assert!(matches!(bad_len, Err(AcmError::Invalid(_))));
+        let bad_marker =
+            Skeleton::new(&[-1, 0], vec![Matrix3::identity()], vec![1.0], vec![3], vec![Vector3::zeros()]);
+        assert!(matches!(bad_marker, Err(AcmError::Invalid(_))));
+    }
+
+    #[test]
+    fn batch_matches_single_and_reports_bad_frame() {
+        let sk = branching();
+        let n_b = sk.n_bones();
+        let mut t = Vec::new();
+        let mut r = Vec::new();
+        for f in 0..5 {
+            let (tf, rf) = pose(f, 1.0, n_b);
+            t.extend_from_slice(tf.as_slice());
+            r.extend(rf.iter().flat_map(|v| [v.x, v.y, v.z]));
+        }
+        let (joints, markers) = sk.forward_batch(&t, &r, None, None).unwrap();
+        let (tf, rf) = pose(3, 1.0, n_b);
+        let single = sk.forward(&tf, &rf, None, None).unwrap();
+        let j0 = 3 * sk.n_joints() * 3;
+        assert!((joints[j0 + 5] - single.joints[1].z).abs() < 1e-15);
+        let m0 = 3 * sk.n_markers() * 3;
+        assert!((markers[m0 + 3] - single.markers[1].x).abs() < 1e-15);
+        r[2 * 3 * n_b + 4] = f64::NAN;
+        match sk.forward_batch(&t, &r, None, None) {
+            Err(AcmError::NonFinite(s)) => assert!(s.contains("frame 2"), "{s}"),
+            other => panic!("expected NonFinite, got {other:?}"),
+        }
+        assert!(matches!(sk.forward_batch(&t, &r[1..], None, None), Err(AcmError::Shape(_))));
+    }
+
+    proptest! {
+        #[test]
+        fn fk_preserves_bone_lengths_and_marker_distances(seed in 0u64..10_000, scale in 0.0f64..3.0) {
+            let sk = branching();
+            let (t, r) = pose(seed, scale, sk.n_bones());
+            let fk = sk.forward(&t, &r, None, None).unwrap();
+            for (b, &(s, e)) in sk.bones().iter().enumerate() {
+                prop_assert!(((fk.joints[e] - fk.joints[s]).norm() - sk.lengths()[b]).abs() < 1e-12);
+            }
+            for (k, &j) in sk.marker_joints().iter().enumerate() {
+                prop_assert!(((fk.markers[k] - fk.joints[j]).norm() - sk.offsets()[k].norm()).abs() < 1e-12);
+            }
+            prop_assert!((fk.joints[sk.root()] - t).norm() < 1e-15);
+        }
+    }
+}
