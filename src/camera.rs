@@ -200,11 +200,11 @@ impl Camera {
         d_params[(1, param::CY)] = 1.0;
         let r4 = r2 * r2;
         let dist_cols = [
-            (xn * r2, yn * r2),                         // k1
-            (xn * r4, yn * r4),                         // k2
-            (2.0 * xn * yn, r2 + 2.0 * yn * yn),        // p1
-            (r2 + 2.0 * xn * xn, 2.0 * xn * yn),        // p2
-            (xn * r4 * r2, yn * r4 * r2),               // k3
+            (xn * r2, yn * r2),                  // k1
+            (xn * r4, yn * r4),                  // k2
+            (2.0 * xn * yn, r2 + 2.0 * yn * yn), // p1
+            (r2 + 2.0 * xn * xn, 2.0 * xn * yn), // p2
+            (xn * r4 * r2, yn * r4 * r2),        // k3
         ];
         for (k, (a, b)) in dist_cols.iter().enumerate() {
             d_params[(0, param::DIST + k)] = fx * a;
@@ -298,7 +298,10 @@ pub fn project_points_jacobian(cameras: &[Camera], points: &[f64]) -> Result<Pro
         pixels[ci * n * 2..(ci + 1) * n * 2]
             .par_chunks_mut(2)
             .zip(d_point[ci * n * 6..(ci + 1) * n * 6].par_chunks_mut(6))
-            .zip(d_params[ci * n * 2 * N_PARAMS..(ci + 1) * n * 2 * N_PARAMS].par_chunks_mut(2 * N_PARAMS))
+            .zip(
+                d_params[ci * n * 2 * N_PARAMS..(ci + 1) * n * 2 * N_PARAMS]
+                    .par_chunks_mut(2 * N_PARAMS),
+            )
             .zip(points.par_chunks(3))
             .for_each(|(((px, dp), dc), x)| {
                 if let Some(j) = cam.project_jacobian(&Vector3::new(x[0], x[1], x[2])) {
@@ -362,7 +365,8 @@ mod tests {
     #[test]
     fn behind_camera_is_reported() {
         let cam = test_camera();
-        let behind = cam.rotation().transpose() * (Vector3::new(0.0, 0.0, -1.0) - cam.translation());
+        let behind =
+            cam.rotation().transpose() * (Vector3::new(0.0, 0.0, -1.0) - cam.translation());
         assert!(cam.project(&behind).is_none());
         assert!(cam.project_jacobian(&behind).is_none());
         let proj = project_points(&[cam], &[behind.x, behind.y, behind.z]).unwrap();
@@ -381,7 +385,10 @@ mod tests {
             xp[k] += h;
             xm[k] -= h;
             let fd = (cam.project(&xp).unwrap() - cam.project(&xm).unwrap()) / (2.0 * h);
-            assert!((fd - j.d_point.column(k)).norm() < 1e-5 * (1.0 + fd.norm()), "point {k}");
+            assert!(
+                (fd - j.d_point.column(k)).norm() < 1e-5 * (1.0 + fd.norm()),
+                "point {k}"
+            );
         }
         for k in 0..N_PARAMS {
             let mut pp = *cam.params();
@@ -393,7 +400,10 @@ mod tests {
                 - Camera::from_params(&pm).unwrap().project(&x).unwrap())
                 / (2.0 * step);
             let an = j.d_params.column(k);
-            assert!((fd - an).norm() < 1e-5 * (1.0 + fd.norm()), "param {k}: {fd} vs {an}");
+            assert!(
+                (fd - an).norm() < 1e-5 * (1.0 + fd.norm()),
+                "param {k}: {fd} vs {an}"
+            );
         }
     }
 
@@ -402,20 +412,34 @@ mod tests {
         let cams = vec![test_camera(), test_camera()];
         let pts = [0.1, 0.0, 0.3, -0.2, 0.1, 0.0];
         let proj = project_points_jacobian(&cams, &pts).unwrap();
-        let single = cams[1].project_jacobian(&Vector3::new(-0.2, 0.1, 0.0)).unwrap();
+        let single = cams[1]
+            .project_jacobian(&Vector3::new(-0.2, 0.1, 0.0))
+            .unwrap();
         // camera 1, point 1
         assert_eq!(proj.pixels[(2 + 1) * 2 + 1], single.pixel.y);
         assert_eq!(proj.d_point[(2 + 1) * 6 + 5], single.d_point[(1, 2)]);
-        assert_eq!(proj.d_params[((2 + 1) * 2 + 1) * N_PARAMS + 14], single.d_params[(1, 14)]);
-        assert!(matches!(project_points(&cams, &pts[..4]), Err(AcmError::Shape(_))));
+        assert_eq!(
+            proj.d_params[((2 + 1) * 2 + 1) * N_PARAMS + 14],
+            single.d_params[(1, 14)]
+        );
+        assert!(matches!(
+            project_points(&cams, &pts[..4]),
+            Err(AcmError::Shape(_))
+        ));
         assert!(matches!(
             project_points(&cams, &[f64::NAN, 0.0, 1.0]),
             Err(AcmError::NonFinite(_))
         ));
         let mut bad = *cams[0].params();
         bad[param::FX] = -1.0;
-        assert!(matches!(Camera::from_params(&bad), Err(AcmError::Invalid(_))));
-        assert!(matches!(Camera::many_from_params(&bad[..14]), Err(AcmError::Shape(_))));
+        assert!(matches!(
+            Camera::from_params(&bad),
+            Err(AcmError::Invalid(_))
+        ));
+        assert!(matches!(
+            Camera::many_from_params(&bad[..14]),
+            Err(AcmError::Shape(_))
+        ));
     }
 
     #[test]

@@ -66,7 +66,10 @@ pub fn project_poses(skeleton: &Skeleton, cameras: &[Camera], poses: &[f64]) -> 
         )));
     }
     if let Some(i) = poses.iter().position(|v| !v.is_finite()) {
-        return Err(AcmError::NonFinite(format!("pose {} contains NaN or infinity", i / np)));
+        return Err(AcmError::NonFinite(format!(
+            "pose {} contains NaN or infinity",
+            i / np
+        )));
     }
     let block = cameras.len() * skeleton.n_markers() * 2;
     let mut out = vec![0.0; (poses.len() / np) * block];
@@ -112,7 +115,10 @@ pub fn emission_batch(
         )));
     }
     if let Some(i) = states.iter().position(|v| !v.is_finite()) {
-        return Err(AcmError::NonFinite(format!("state {} contains NaN or infinity", i / ns)));
+        return Err(AcmError::NonFinite(format!(
+            "state {} contains NaN or infinity",
+            i / ns
+        )));
     }
     let block = cameras.len() * skeleton.n_markers() * 2;
     let mut out = vec![0.0; (states.len() / ns) * block];
@@ -145,8 +151,21 @@ mod tests {
         ])
         .unwrap();
         let c1 = Camera::from_params(&[
-            0.0, -std::f64::consts::FRAC_PI_2, 0.0, 0.0, 0.0, 20.0, 900.0, 900.0, 600.0, 500.0,
-            0.0, 0.0, 0.0, 0.0, 0.0,
+            0.0,
+            -std::f64::consts::FRAC_PI_2,
+            0.0,
+            0.0,
+            0.0,
+            20.0,
+            900.0,
+            900.0,
+            600.0,
+            500.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
         ])
         .unwrap();
         vec![c0, c1]
@@ -167,7 +186,9 @@ mod tests {
         let norm = Normalization::default();
         let map = StateMap::new(n_b, &lower, &upper, &norm, true).unwrap();
         let ns = map.n_state();
-        let states: Vec<f64> = (0..3 * ns).map(|i| ((i * 37 % 17) as f64 / 17.0 - 0.5) * 0.3).collect();
+        let states: Vec<f64> = (0..3 * ns)
+            .map(|i| ((i * 37 % 17) as f64 / 17.0 - 0.5) * 0.3)
+            .collect();
         let g = emission_batch(&sk, &cams, &map, &norm, &states).unwrap();
         for s in 0..3 {
             let pose = map.to_pose(&states[s * ns..(s + 1) * ns]).unwrap();

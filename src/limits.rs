@@ -114,7 +114,12 @@ impl StateMap {
         ensure_len(upper.len(), 3 * n_bones, "upper joint limits (n_bones, 3)")?;
         let n_pose = 3 + 3 * n_bones;
         let mut free = vec![0, 1, 2];
-        let mut maps = vec![EntryMap::Linear { scale: norm.translation }; 3];
+        let mut maps = vec![
+            EntryMap::Linear {
+                scale: norm.translation
+            };
+            3
+        ];
         let mut template = vec![0.0; n_pose];
         for (e, (&lo, &hi)) in lower.iter().zip(upper).enumerate() {
             let (bone, axis) = (e / 3, ["x", "y", "z"][e % 3]);
@@ -143,7 +148,9 @@ impl StateMap {
             maps.push(if enforce_limits && bounded {
                 EntryMap::Bounded { lo, hi }
             } else {
-                EntryMap::Linear { scale: norm.rotation }
+                EntryMap::Linear {
+                    scale: norm.rotation,
+                }
             });
         }
         Ok(Self {
@@ -303,7 +310,12 @@ mod tests {
         }
         // Without limits the bounded entry is linear.
         let lin = StateMap::new(2, &lower, &upper, &norm, false).unwrap();
-        assert_eq!(lin.entry_maps()[6], EntryMap::Linear { scale: norm.rotation });
+        assert_eq!(
+            lin.entry_maps()[6],
+            EntryMap::Linear {
+                scale: norm.rotation
+            }
+        );
     }
 
     #[test]

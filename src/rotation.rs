@@ -148,7 +148,10 @@ pub fn rodrigues_log(rot: &Matrix3<f64>) -> Result<Vector3<f64>> {
         axis.dot(&v)
     } else {
         // θ = π: choose the representative with a positive leading component.
-        axis.iter().copied().find(|c| c.abs() > 1e-12).unwrap_or(1.0)
+        axis.iter()
+            .copied()
+            .find(|c| c.abs() > 1e-12)
+            .unwrap_or(1.0)
     };
     if sign_ref < 0.0 {
         axis = -axis;
@@ -215,16 +218,18 @@ pub fn rodrigues_jacobian_batch(r: &[f64]) -> Result<Vec<f64>> {
     }
     ensure_finite(r, "Rodrigues vectors")?;
     let mut out = vec![0.0; r.len() * 9];
-    out.par_chunks_mut(27).zip(r.par_chunks(3)).for_each(|(o, v)| {
-        let (_, d) = rodrigues_jacobian(&Vector3::new(v[0], v[1], v[2]));
-        for a in 0..3 {
-            for b in 0..3 {
-                for (k, dk) in d.iter().enumerate() {
-                    o[(a * 3 + b) * 3 + k] = dk[(a, b)];
+    out.par_chunks_mut(27)
+        .zip(r.par_chunks(3))
+        .for_each(|(o, v)| {
+            let (_, d) = rodrigues_jacobian(&Vector3::new(v[0], v[1], v[2]));
+            for a in 0..3 {
+                for b in 0..3 {
+                    for (k, dk) in d.iter().enumerate() {
+                        o[(a * 3 + b) * 3 + k] = dk[(a, b)];
+                    }
                 }
             }
-        }
-    });
+        });
     Ok(out)
 }
 
@@ -317,7 +322,10 @@ mod tests {
     #[test]
     fn log_rejects_non_rotations() {
         let reflection = Matrix3::from_diagonal(&Vector3::new(-1.0, 1.0, 1.0));
-        assert!(matches!(rodrigues_log(&reflection), Err(AcmError::Invalid(_))));
+        assert!(matches!(
+            rodrigues_log(&reflection),
+            Err(AcmError::Invalid(_))
+        ));
         let scaled = Matrix3::identity() * 1.01;
         assert!(matches!(rodrigues_log(&scaled), Err(AcmError::Invalid(_))));
         let mut nan = Matrix3::identity();

@@ -211,7 +211,11 @@ impl Skeleton {
     ) -> Result<Self> {
         let (tree, _, order) = validate_tree(parents)?;
         ensure_len(rest_joints.len(), tree.len(), "rest joint positions")?;
-        ensure_len(marker_rest.len(), marker_joints.len(), "rest marker positions")?;
+        ensure_len(
+            marker_rest.len(),
+            marker_joints.len(),
+            "rest marker positions",
+        )?;
         for p in rest_joints.iter().chain(marker_rest.iter()) {
             ensure_finite(p.as_slice(), "rest pose positions")?;
         }
@@ -348,7 +352,11 @@ impl Skeleton {
         out
     }
 
-    fn check_overrides(&self, lengths: Option<&[f64]>, offsets: Option<&[Vector3<f64>]>) -> Result<()> {
+    fn check_overrides(
+        &self,
+        lengths: Option<&[f64]>,
+        offsets: Option<&[Vector3<f64>]>,
+    ) -> Result<()> {
         if let Some(l) = lengths {
             ensure_len(l.len(), self.n_bones(), "bone lengths")?;
             validate_lengths(l)?;
@@ -385,7 +393,12 @@ impl Skeleton {
             ensure_finite(x.as_slice(), "bone rotations")?;
         }
         self.check_overrides(lengths, offsets)?;
-        Ok(self.forward_unchecked(t, r, lengths.unwrap_or(&self.lengths), offsets.unwrap_or(&self.offsets)))
+        Ok(self.forward_unchecked(
+            t,
+            r,
+            lengths.unwrap_or(&self.lengths),
+            offsets.unwrap_or(&self.offsets),
+        ))
     }
 
     /// Forward kinematics without input validation (hot path of batch code that validated
@@ -522,7 +535,10 @@ impl Skeleton {
         }
         // Offsets.
         for (k, &b) in self.marker_bone.iter().enumerate() {
-            crate::rotation::write_row_major(&fk.bone_rotations[b], &mut d_offsets[9 * k..9 * k + 9]);
+            crate::rotation::write_row_major(
+                &fk.bone_rotations[b],
+                &mut d_offsets[9 * k..9 * k + 9],
+            );
         }
         Ok(FkJacobian {
             fk,
@@ -559,9 +575,17 @@ impl Skeleton {
             )));
         }
         let n_t = t.len() / 3;
-        ensure_len(r.len(), n_t * 3 * self.n_bones(), "rotations (T, n_bones, 3)")?;
+        ensure_len(
+            r.len(),
+            n_t * 3 * self.n_bones(),
+            "rotations (T, n_bones, 3)",
+        )?;
         if let Some(i) = t.iter().chain(r.iter()).position(|v| !v.is_finite()) {
-            let frame = if i < t.len() { i / 3 } else { (i - t.len()) / (3 * self.n_bones()) };
+            let frame = if i < t.len() {
+                i / 3
+            } else {
+                (i - t.len()) / (3 * self.n_bones())
+            };
             return Err(AcmError::NonFinite(format!(
                 "pose of frame {frame} contains NaN or infinity"
             )));
@@ -569,7 +593,11 @@ impl Skeleton {
         let offsets_v: Option<Vec<Vector3<f64>>> = match offsets {
             Some(o) => {
                 ensure_len(o.len(), 3 * self.n_markers(), "marker offsets (M, 3)")?;
-                Some(o.chunks(3).map(|c| Vector3::new(c[0], c[1], c[2])).collect())
+                Some(
+                    o.chunks(3)
+                        .map(|c| Vector3::new(c[0], c[1], c[2]))
+                        .collect(),
+                )
             }
             None => None,
         };
@@ -721,13 +749,19 @@ pub(crate) mod tests {
 
     fn pose(seed: u64, scale: f64, n: usize) -> (Vector3<f64>, Vec<Vector3<f64>>) {
         // Small deterministic pseudo-random generator (LCG) for reproducible poses.
-        let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let mut s = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         let mut next = || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((s >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
         };
         let t = Vector3::new(next(), next(), next());
-        let r = (0..n).map(|_| Vector3::new(next(), next(), next()) * scale).collect();
+        let r = (0..n)
+            .map(|_| Vector3::new(next(), next(), next()) * scale)
+            .collect();
         (t, r)
     }
 
@@ -762,9 +796,21 @@ pub(crate) mod tests {
         r[0] = rv;
         let t = Vector3::new(1.0, 2.0, 3.0);
         let fk = sk.forward(&t, &r, None, None).unwrap();
-        let rest = sk.forward(&Vector3::zeros(), &vec![Vector3::zeros(); sk.n_bones()], None, None).unwrap();
+        let rest = sk
+            .forward(
+                &Vector3::zeros(),
+                &vec![Vector3::zeros(); sk.n_bones()],
+                None,
+                None,
+            )
+            .unwrap();
         let q = rodrigues(&rv);
-        for (a, b) in fk.joints.iter().zip(&rest.joints).chain(fk.markers.iter().zip(&rest.markers)) {
+        for (a, b) in fk
+            .joints
+            .iter()
+            .zip(&rest.joints)
+            .chain(fk.markers.iter().zip(&rest.markers))
+        {
             assert!((a - (t + q * b)).norm() < 1e-12);
         }
     }
@@ -817,7 +863,11 @@ pub(crate) mod tests {
         };
         let mut sorted: Vec<usize> = (0..n_b).collect();
         sorted.sort_by_key(|&b| depth(bones[b].0));
-        assert_ne!(sorted, (0..n_b).collect::<Vec<_>>(), "test needs a non-trivial order");
+        assert_ne!(
+            sorted,
+            (0..n_b).collect::<Vec<_>>(),
+            "test needs a non-trivial order"
+        );
         let mut rot = vec![Matrix3::identity(); n_b];
         for &i in &sorted {
             for &j in &sorted {
@@ -853,9 +903,15 @@ pub(crate) mod tests {
         let (t, r) = pose(3, 0.9, sk.n_bones());
         let lengths: Vec<f64> = sk.lengths().iter().map(|l| l * 1.1).collect();
         let offsets: Vec<Vector3<f64>> = sk.offsets().iter().map(|v| v * 0.9).collect();
-        let jac = sk.forward_jacobian(&t, &r, Some(&lengths), Some(&offsets)).unwrap();
+        let jac = sk
+            .forward_jacobian(&t, &r, Some(&lengths), Some(&offsets))
+            .unwrap();
         let flat = |fk: &FkResult| -> Vec<f64> {
-            fk.joints.iter().chain(fk.markers.iter()).flat_map(|p| [p.x, p.y, p.z]).collect()
+            fk.joints
+                .iter()
+                .chain(fk.markers.iter())
+                .flat_map(|p| [p.x, p.y, p.z])
+                .collect()
         };
         let rows = 3 * (sk.n_joints() + sk.n_markers());
         let h = 1e-6;
@@ -872,12 +928,21 @@ pub(crate) mod tests {
                 rp[(c - 3) / 3][(c - 3) % 3] += h;
                 rm[(c - 3) / 3][(c - 3) % 3] -= h;
             }
-            let fp = flat(&sk.forward(&tp, &rp, Some(&lengths), Some(&offsets)).unwrap());
-            let fm = flat(&sk.forward(&tm, &rm, Some(&lengths), Some(&offsets)).unwrap());
+            let fp = flat(
+                &sk.forward(&tp, &rp, Some(&lengths), Some(&offsets))
+                    .unwrap(),
+            );
+            let fm = flat(
+                &sk.forward(&tm, &rm, Some(&lengths), Some(&offsets))
+                    .unwrap(),
+            );
             for row in 0..rows {
                 let fd = (fp[row] - fm[row]) / (2.0 * h);
                 let an = jac.d_pose[row * cols + c];
-                assert!((fd - an).abs() < 1e-7, "pose col {c} row {row}: fd {fd} an {an}");
+                assert!(
+                    (fd - an).abs() < 1e-7,
+                    "pose col {c} row {row}: fd {fd} an {an}"
+                );
             }
         }
         for b in 0..sk.n_bones() {
@@ -899,8 +964,14 @@ pub(crate) mod tests {
                 let mut vm = offsets.clone();
                 vp[k][c] += h;
                 vm[k][c] -= h;
-                let mp = sk.forward(&t, &r, Some(&lengths), Some(&vp)).unwrap().markers[k];
-                let mm = sk.forward(&t, &r, Some(&lengths), Some(&vm)).unwrap().markers[k];
+                let mp = sk
+                    .forward(&t, &r, Some(&lengths), Some(&vp))
+                    .unwrap()
+                    .markers[k];
+                let mm = sk
+                    .forward(&t, &r, Some(&lengths), Some(&vm))
+                    .unwrap()
+                    .markers[k];
                 let fd = (mp - mm) / (2.0 * h);
                 for a in 0..3 {
                     assert!((fd[a] - jac.d_offsets[9 * k + 3 * a + c]).abs() < 1e-7);
@@ -913,7 +984,13 @@ pub(crate) mod tests {
     fn invalid_trees_are_rejected() {
         let f = |parents: &[i64]| {
             let n = parents.len().saturating_sub(1);
-            Skeleton::new(parents, vec![Matrix3::identity(); n], vec![1.0; n], vec![], vec![])
+            Skeleton::new(
+                parents,
+                vec![Matrix3::identity(); n],
+                vec![1.0; n],
+                vec![],
+                vec![],
+            )
         };
         assert!(matches!(f(&[-1, 0, 1]), Ok(_)));
         assert!(matches!(f(&[-1, -1, 1]), Err(AcmError::Invalid(_))));
@@ -921,10 +998,21 @@ pub(crate) mod tests {
         assert!(matches!(f(&[-1, 5]), Err(AcmError::Invalid(_))));
         assert!(matches!(f(&[0, 0]), Err(AcmError::Invalid(_)))); // self parent, no root
         assert!(matches!(f(&[-1]), Err(AcmError::Invalid(_))));
-        let bad_len = Skeleton::new(&[-1, 0], vec![Matrix3::identity()], vec![0.0], vec![], vec![]);
+        let bad_len = Skeleton::new(
+            &[-1, 0],
+            vec![Matrix3::identity()],
+            vec![0.0],
+            vec![],
+            vec![],
+        );
         assert!(matches!(bad_len, Err(AcmError::Invalid(_))));
-        let bad_marker =
-            Skeleton::new(&[-1, 0], vec![Matrix3::identity()], vec![1.0], vec![3], vec![Vector3::zeros()]);
+        let bad_marker = Skeleton::new(
+            &[-1, 0],
+            vec![Matrix3::identity()],
+            vec![1.0],
+            vec![3],
+            vec![Vector3::zeros()],
+        );
         assert!(matches!(bad_marker, Err(AcmError::Invalid(_))));
     }
 
@@ -951,7 +1039,10 @@ pub(crate) mod tests {
             Err(AcmError::NonFinite(s)) => assert!(s.contains("frame 2"), "{s}"),
             other => panic!("expected NonFinite, got {other:?}"),
         }
-        assert!(matches!(sk.forward_batch(&t, &r[1..], None, None), Err(AcmError::Shape(_))));
+        assert!(matches!(
+            sk.forward_batch(&t, &r[1..], None, None),
+            Err(AcmError::Shape(_))
+        ));
     }
 
     proptest! {

@@ -115,13 +115,21 @@ impl SymmetryMap {
     /// # Errors
     /// Shape error if `reduced.len() != 3 n*_marker`.
     pub fn expand_offsets(&self, reduced: &[f64]) -> Result<Vec<f64>> {
-        ensure_len(reduced.len(), 3 * self.n_reduced_markers, "reduced marker offsets")?;
+        ensure_len(
+            reduced.len(),
+            3 * self.n_reduced_markers,
+            "reduced marker offsets",
+        )?;
         Ok(self
             .marker_source
             .iter()
             .flat_map(|&(s, mirror)| {
                 let sign = if mirror { -1.0 } else { 1.0 };
-                [sign * reduced[3 * s], reduced[3 * s + 1], reduced[3 * s + 2]]
+                [
+                    sign * reduced[3 * s],
+                    reduced[3 * s + 1],
+                    reduced[3 * s + 2],
+                ]
             })
             .collect())
     }
@@ -173,7 +181,11 @@ impl SymmetryMap {
     /// # Errors
     /// Shape error if `grad.len()` is not `3 M`.
     pub fn reduce_offset_grad(&self, grad: &[f64]) -> Result<Vec<f64>> {
-        ensure_len(grad.len(), 3 * self.marker_source.len(), "marker-offset gradient")?;
+        ensure_len(
+            grad.len(),
+            3 * self.marker_source.len(),
+            "marker-offset gradient",
+        )?;
         let mut out = vec![0.0; 3 * self.n_reduced_markers];
         for (k, &(s, mirror)) in self.marker_source.iter().enumerate() {
             let sign = if mirror { -1.0 } else { 1.0 };
@@ -194,13 +206,22 @@ mod tests {
         // bones: 0 central, 1 left, 2 right(of 1), 3 central
         let m = SymmetryMap::new(4, &[(1, 2)], 3, &[(0, 2)]).unwrap();
         assert_eq!(m.n_reduced_bones(), 3);
-        assert_eq!(m.expand_lengths(&[1.0, 2.0, 3.0]).unwrap(), vec![1.0, 2.0, 2.0, 3.0]);
+        assert_eq!(
+            m.expand_lengths(&[1.0, 2.0, 3.0]).unwrap(),
+            vec![1.0, 2.0, 2.0, 3.0]
+        );
         assert_eq!(m.n_reduced_markers(), 2);
         let v = m.expand_offsets(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]).unwrap();
         assert_eq!(v, vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0, -1.0, 2.0, 3.0]);
         // Round trip of a symmetric configuration.
-        assert_eq!(m.reduce_offsets(&v).unwrap(), vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
-        assert_eq!(m.reduce_lengths(&[1.0, 2.0, 2.0, 3.0]).unwrap(), vec![1.0, 2.0, 3.0]);
+        assert_eq!(
+            m.reduce_offsets(&v).unwrap(),
+            vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+        );
+        assert_eq!(
+            m.reduce_lengths(&[1.0, 2.0, 2.0, 3.0]).unwrap(),
+            vec![1.0, 2.0, 3.0]
+        );
     }
 
     #[test]
@@ -209,13 +230,33 @@ mod tests {
         let m = SymmetryMap::new(4, &[(1, 2)], 3, &[(2, 0)]).unwrap();
         let x = [0.3, -1.2, 0.7, 2.0, 0.1, -0.4];
         let g = [0.5, 1.5, -2.0, 0.25, -0.5, 1.0, 3.0, -1.0, 0.2];
-        let lhs: f64 = m.expand_offsets(&x).unwrap().iter().zip(&g).map(|(a, b)| a * b).sum();
-        let rhs: f64 = x.iter().zip(m.reduce_offset_grad(&g).unwrap()).map(|(a, b)| a * b).sum();
+        let lhs: f64 = m
+            .expand_offsets(&x)
+            .unwrap()
+            .iter()
+            .zip(&g)
+            .map(|(a, b)| a * b)
+            .sum();
+        let rhs: f64 = x
+            .iter()
+            .zip(m.reduce_offset_grad(&g).unwrap())
+            .map(|(a, b)| a * b)
+            .sum();
         assert!((lhs - rhs).abs() < 1e-14);
         let xl = [1.0, 2.0, 3.0];
         let gl = [0.1, 0.2, 0.3, 0.4];
-        let lhs: f64 = m.expand_lengths(&xl).unwrap().iter().zip(&gl).map(|(a, b)| a * b).sum();
-        let rhs: f64 = xl.iter().zip(m.reduce_length_grad(&gl).unwrap()).map(|(a, b)| a * b).sum();
+        let lhs: f64 = m
+            .expand_lengths(&xl)
+            .unwrap()
+            .iter()
+            .zip(&gl)
+            .map(|(a, b)| a * b)
+            .sum();
+        let rhs: f64 = xl
+            .iter()
+            .zip(m.reduce_length_grad(&gl).unwrap())
+            .map(|(a, b)| a * b)
+            .sum();
         assert!((lhs - rhs).abs() < 1e-14);
     }
 

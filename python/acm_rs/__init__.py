@@ -1,0 +1,34 @@
+"""acm-rs: fast 3D skeletal kinematics from multi-camera video (ACM) with a Rust core.
+
+The geometry of the Anatomically Constrained Model (Monsees et al. 2022, supplementary text):
+Rodrigues rotations (sec. 1), pinhole cameras with distortion (sec. 2.1), skeleton forward
+kinematics (sec. 3.1, Alg. 1), symmetry maps (Alg. 2-3), normalisation (sec. 3.3) and the
+joint-limit state map (Alg. 10), all with exact derivatives computed in Rust.
+"""
+
+from . import models
+from ._native import AcmNumericalError
+from .camera import PARAM_NAMES, Camera, CameraRig
+from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
+from .skeleton import BoneLengthConstraint, FKJacobian, Skeleton, SymmetryMap
+from .state import Normalization, StateMap
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AcmNumericalError",
+    "BoneLengthConstraint",
+    "Camera",
+    "CameraRig",
+    "FKJacobian",
+    "Normalization",
+    "PARAM_NAMES",
+    "Skeleton",
+    "StateMap",
+    "SymmetryMap",
+    "__version__",
+    "models",
+    "rodrigues",
+    "rodrigues_inverse",
+    "rodrigues_jacobian",
+]

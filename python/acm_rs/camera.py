@@ -1,0 +1,302 @@
+"""Pinhole cameras with OpenCV distortion (ACM supplement section 2.1, eqs. 4-6).
+
+``x_cam = R(rvec) x_world + tvec`` (eq. 4); distortion ``(k1, k2, p1, p2, k3)`` in OpenCV order
+(the paper's eq. 5 is the case ``p1 = p2 = k3 = 0``); pixels ``u = fx x'' + cx``,
+``v = fy y'' + cy`` (eq. 6). Projection runs in Rust; points behind a camera give NaN pixels
+(and ``False`` in :meth:`Camera.in_front`), never a silently mirrored projection.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator, Sequence
+
+import numpy as np
+
+from . import _native
+from ._arrays import as_float_array
+from .rotation import rodrigues
+
+#: Order of the 15 camera parameters used by :attr:`Camera.params` and the Jacobians.
+PARAM_NAMES: tuple[str, ...] = (
+    "rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3",
+)  # fmt: skip
+
+
+class Camera:
+    """One calibrated camera.
+
+    Parameters
+    ----------
+    matrix : array_like, shape (3, 3)
+        Camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` in pixels (no skew).
+    dist : array_like, shape (2,) or (5,)
+        Distortion: the paper's ``(k1, k2)`` or OpenCV's ``(k1, k2, p1, p2, k3)``.
+    rvec : array_like, shape (3,)
+        Rodrigues vector of the world-to-camera rotation (radians).
+    tvec : array_like, shape (3,)
+        World-to-camera translation (world units).
+    size : (int, int), optional
+        Image ``(width, height)`` in pixels.
+    name : str, optional
+        Camera name (as in anipose ``calibration.toml``).
+    """
+
+    __slots__ = ("_params", "size", "name")
+
+    def __init__(
+        self,
+        matrix: np.ndarray,
+        dist: Sequence[float] | np.ndarray,
+        rvec: Sequence[float] | np.ndarray,
+        tvec: Sequence[float] | np.ndarray,
+        size: tuple[int, int] | None = None,
+        name: str | None = None,
+    ) -> None:
+        m = as_float_array(matrix, "matrix", (3, 3))
+        if m.ndim != 2:
+            raise ValueError(f"matrix must have shape (3, 3), got {m.shape}")
+        if abs(m[0, 1]) > 1e-9 or np.any(np.abs(m[1:, 0]) > 1e-9) or abs(m[2, 1]) > 1e-9:
+            raise ValueError(f"matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {m}")
+        if abs(m[2, 2] - 1.0) > 1e-9:
+            raise ValueError(f"matrix[2, 2] must be 1, got {m[2, 2]}")
+        d = as_float_array(dist, "dist", (None,)).ravel()
+        if d.size == 2:
+            d = np.concatenate([d, np.zeros(3)])
+        elif d.size == 4:
+            d = np.concatenate([d, np.zeros(1)])
+        elif d.size != 5:
+            raise ValueError(
+                f"dist must have 2 (k1, k2) or 5 (k1, k2, p1, p2, k3) entries, got {d.size}"
+            )
+        r = as_float_array(rvec, "rvec", (3,)).ravel()
+        t = as_float_array(tvec, "tvec", (3,)).ravel()
+        if r.size != 3 or t.size != 3:
+            raise ValueError("rvec and tvec must have 3 entries each")
+        params = np.concatenate([r, t, [m[0, 0], m[1, 1], m[0, 2], m[1, 2]], d])
+        self._params = _checked_params(params[None, :])[0]
+        self._params.setflags(write=False)
+        if size is not None:
+            if len(size) != 2 or min(int(size[0]), int(size[1])) <= 0:
+                raise ValueError(f"size must be (width, height) > 0, got {size}")
+            size = (int(size[0]), int(size[1]))
+        self.size = size
+        self.name = name
+
+    @classmethod
+    def from_params(
+        cls,
+        params: np.ndarray,
+        size: tuple[int, int] | None = None,
+        name: str | None = None,
+    ) -> Camera:
+        """Build a camera from its 15 parameters (order :data:`PARAM_NAMES`)."""
+        p = as_float_array(params, "params", (15,)).ravel()
+        if p.size != 15:
+            raise ValueError(f"params must have 15 entries, got {p.size}")
+        matrix = np.array([[p[6], 0.0, p[8]], [0.0, p[7], p[9]], [0.0, 0.0, 1.0]])
+        return cls(matrix, p[10:15], p[0:3], p[3:6], size=size, name=name)
+
+    # -- parameters -------------------------------------------------------------------------
+    @property
+    def params(self) -> np.ndarray:
+        """(15,) parameters ``[rvec, tvec, fx, fy, cx, cy, k1, k2, p1, p2, k3]`` (read-only)."""
+        return self._params
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(3, 3) camera matrix in pixels."""
+        p = self._params
+        return np.array([[p[6], 0.0, p[8]], [0.0, p[7], p[9]], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist(self) -> np.ndarray:
+        """(5,) OpenCV distortion ``(k1, k2, p1, p2, k3)``."""
+        return self._params[10:15].copy()
+
+    @property
+    def rvec(self) -> np.ndarray:
+        """(3,) Rodrigues vector of the world-to-camera rotation (radians)."""
+        return self._params[0:3].copy()
+
+    @property
+    def tvec(self) -> np.ndarray:
+        """(3,) world-to-camera translation (world units)."""
+        return self._params[3:6].copy()
+
+    @property
+    def rotation_matrix(self) -> np.ndarray:
+        """(3, 3) world-to-camera rotation."""
+        return rodrigues(self._params[0:3])
+
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) camera centre in world coordinates, ``-R^T t``."""
+        return -self.rotation_matrix.T @ self._params[3:6]
+
+    # -- projection -------------------------------------------------------------------------
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Project world points to pixels (eq. 4).
+
+        Parameters
+        ----------
+        points : array_like, shape (..., 3)
+            World coordinates (world units). NaN rows (missing points) stay NaN.
+
+        Returns
+        -------
+        numpy.ndarray, shape (..., 2)
+            Pixel coordinates ``(u, v)``; NaN for points at or behind the camera plane.
+        """
+        return _project(self._params[None, :], points)[0]
+
+    def in_front(self, points: np.ndarray) -> np.ndarray:
+        """Boolean mask ``(...)``: whether each point lies in front of the camera."""
+        pts = as_float_array(points, "points", (3,), finite=False)
+        depth = (pts @ self.rotation_matrix.T + self._params[3:6])[..., 2]
+        return depth > 1e-9
+
+    def project_jacobian(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Project points and return exact derivatives.
+
+        Parameters
+        ----------
+        points : array_like, shape (..., 3)
+            Finite world coordinates.
+
+        Returns
+        -------
+        pixels : numpy.ndarray, shape (..., 2)
+        d_point : numpy.ndarray, shape (..., 2, 3)
+            ``d(u, v) / d(x, y, z)``.
+        d_params : numpy.ndarray, shape (..., 2, 15)
+            ``d(u, v) / d params`` in the order of :data:`PARAM_NAMES`.
+            All three are NaN for points behind the camera.
+        """
+        pts = as_float_array(points, "points", (3,))
+        lead = pts.shape[:-1]
+        px, dp, dc = _native.project_jacobian(self._params[None, :], pts.reshape(-1, 3))
+        return (
+            px[0].reshape(lead + (2,)),
+            dp[0].reshape(lead + (2, 3)),
+            dc[0].reshape(lead + (2, 15)),
+        )
+
+    def to_dict(self) -> dict:
+        """Anipose ``calibration.toml`` table of this camera."""
+        out: dict = {
+            "name": self.name if self.name is not None else "",
+            "matrix": self.matrix.tolist(),
+            "distortions": self.dist.tolist(),
+            "rotation": self.rvec.tolist(),
+            "translation": self.tvec.tolist(),
+        }
+        if self.size is not None:
+            out["size"] = list(self.size)
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Camera:
+        """Inverse of :meth:`to_dict` (anipose keys)."""
+        missing = {"matrix", "distortions", "rotation", "translation"} - set(d)
+        if missing:
+            raise ValueError(f"camera table lacks keys {sorted(missing)}")
+        size = tuple(d["size"]) if "size" in d else None
+        return cls(
+            d["matrix"], d["distortions"], d["rotation"], d["translation"], size, d.get("name")
+        )
+
+    def __repr__(self) -> str:
+        p = self._params
+        return (
+            f"Camera(name={self.name!r}, f=({p[6]:.1f}, {p[7]:.1f}), "
+            f"c=({p[8]:.1f}, {p[9]:.1f}), center={np.round(self.center, 3).tolist()})"
+        )
+
+
+class CameraRig:
+    """An ordered set of cameras sharing one world frame.
+
+    Parameters
+    ----------
+    cameras : iterable of Camera
+        At least one camera; names (when given) must be unique.
+    """
+
+    def __init__(self, cameras: Iterable[Camera]) -> None:
+        cams = list(cameras)
+        if not cams:
+            raise ValueError("a camera rig needs at least one camera")
+        for c in cams:
+            if not isinstance(c, Camera):
+                raise ValueError(f"CameraRig takes Camera objects, got {type(c).__name__}")
+        names = [c.name for c in cams if c.name is not None]
+        if len(set(names)) != len(names):
+            raise ValueError(f"camera names must be unique, got {names}")
+        self.cameras: list[Camera] = cams
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __iter__(self) -> Iterator[Camera]:
+        return iter(self.cameras)
+
+    def __getitem__(self, key: int | str) -> Camera:
+        if isinstance(key, str):
+            for c in self.cameras:
+                if c.name == key:
+                    return c
+            raise KeyError(f"no camera named {key!r}; cameras: {self.names}")
+        return self.cameras[key]
+
+    @property
+    def names(self) -> list[str | None]:
+        """Camera names in rig order."""
+        return [c.name for c in self.cameras]
+
+    def get_params(self) -> np.ndarray:
+        """(n_cams, 15) parameters, rows in rig order (see :data:`PARAM_NAMES`)."""
+        return np.stack([c.params for c in self.cameras])
+
+    def set_params(self, params: np.ndarray) -> CameraRig:
+        """Return a new rig with the given (n_cams, 15) parameters (sizes and names kept)."""
+        p = as_float_array(params, "params", (len(self), 15))
+        return CameraRig(
+            Camera.from_params(row, c.size, c.name) for row, c in zip(p, self.cameras)
+        )
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Project world points into every camera.
+
+        Parameters
+        ----------
+        points : array_like, shape (..., 3)
+            World coordinates; NaN rows stay NaN.
+
+        Returns
+        -------
+        numpy.ndarray, shape (n_cams, ..., 2)
+            Pixels; NaN where a point is missing or behind a camera.
+        """
+        return _project(self.get_params(), points)
+
+    def __repr__(self) -> str:
+        return f"CameraRig({len(self)} cameras: {self.names})"
+
+
+def _checked_params(params: np.ndarray) -> np.ndarray:
+    # Validation happens in Rust (focal lengths > 0, finite); projecting zero points runs it.
+    params = np.ascontiguousarray(params, dtype=np.float64)
+    _native.project(params, np.zeros((0, 3)))
+    return params[0:1].copy() if params.shape[0] == 1 else params
+
+
+def _project(params: np.ndarray, points: np.ndarray) -> np.ndarray:
+    pts = as_float_array(points, "points", (3,), finite=False)
+    lead = pts.shape[:-1]
+    flat = pts.reshape(-1, 3)
+    ok = np.all(np.isfinite(flat), axis=1)
+    px = np.full((params.shape[0], flat.shape[0], 2), np.nan)
+    if np.any(ok):
+        sub = np.ascontiguousarray(flat[ok])
+        px[:, ok, :] = _native.project(params, sub)[0]
+    return px.reshape((params.shape[0],) + lead + (2,))

@@ -1,0 +1,45 @@
+"""The ACM paper's rodent models (Monsees et al. 2022, Supp. Fig. 1, Supp. Tables 1-2, sec. 6).
+
+The models are TOML data files beside this module (``rat.toml``, ``mouse.toml``); see
+``docs/skeleton_format.md`` for the format and ``docs/models.md`` for the choices made.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+from ..skeleton import Skeleton
+
+__all__ = ["available", "load", "mouse", "path", "rat"]
+
+
+def available() -> list[str]:
+    """Names of the bundled models."""
+    return sorted(
+        p.name[: -len(".toml")]
+        for p in resources.files(__name__).iterdir()
+        if p.name.endswith(".toml")
+    )
+
+
+def path(name: str) -> Path:
+    """Path of a bundled model file."""
+    if name not in available():
+        raise ValueError(f"unknown model {name!r}; available: {available()}")
+    return Path(str(resources.files(__name__).joinpath(f"{name}.toml")))
+
+
+def load(name: str) -> Skeleton:
+    """Load a bundled model by name (``"rat"`` or ``"mouse"``)."""
+    return Skeleton.load(path(name))
+
+
+def rat() -> Skeleton:
+    """The ACM rat model: 29 joints, 28 bones, 43 markers, 50 free pose entries (cm)."""
+    return load("rat")
+
+
+def mouse() -> Skeleton:
+    """The ACM mouse model (rat topology, mouse bone lengths of Supp. Table 2; cm)."""
+    return load("mouse")

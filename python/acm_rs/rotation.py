@@ -1,0 +1,67 @@
+"""Rodrigues rotations (ACM supplement section 1, eqs. 1-3), vectorised over leading axes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import _native
+from ._arrays import as_float_array
+
+
+def rodrigues(r: np.ndarray) -> np.ndarray:
+    """Rotation matrices of Rodrigues vectors (eq. 2, ``f_{r->R}``).
+
+    Parameters
+    ----------
+    r : array_like, shape (..., 3)
+        Rodrigues vectors ``theta * axis`` in radians.
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 3, 3)
+        Rotation matrices; the zero vector gives the identity.
+    """
+    arr = as_float_array(r, "r", (3,))
+    out = _native.rodrigues(arr.reshape(-1, 3))
+    return out.reshape(arr.shape[:-1] + (3, 3))
+
+
+def rodrigues_inverse(matrices: np.ndarray) -> np.ndarray:
+    """Rodrigues vectors of rotation matrices (inverse of eq. 2), stable near 0 and pi.
+
+    Parameters
+    ----------
+    matrices : array_like, shape (..., 3, 3)
+        Proper rotation matrices (``max |R^T R - I| <= 1e-6``, ``det R > 0``).
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 3)
+        Rodrigues vectors with angle in [0, pi] (radians).
+
+    Raises
+    ------
+    ValueError
+        If a matrix is not a rotation or contains NaN.
+    """
+    arr = as_float_array(matrices, "matrices", (3, 3))
+    out = _native.rodrigues_log(arr.reshape(-1, 3, 3))
+    return out.reshape(arr.shape[:-2] + (3,))
+
+
+def rodrigues_jacobian(r: np.ndarray) -> np.ndarray:
+    """Exact derivative of the rotation matrix with respect to the Rodrigues vector.
+
+    Parameters
+    ----------
+    r : array_like, shape (..., 3)
+        Rodrigues vectors (radians).
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 3, 3, 3)
+        ``out[..., a, b, k] = dR_ab / dr_k``; exact at ``r = 0`` (the generators of so(3)).
+    """
+    arr = as_float_array(r, "r", (3,))
+    out = _native.rodrigues_jacobian(arr.reshape(-1, 3))
+    return out.reshape(arr.shape[:-1] + (3, 3, 3))

@@ -1,0 +1,793 @@
+"""Skeleton model (ACM supplement section 3): tree, rest geometry, markers, constraints, and
+forward kinematics (Alg. 1) computed in Rust.
+
+Conventions (see ``docs/skeleton_format.md``):
+
+* Bone ``b`` ends at the ``b``-th non-root joint (joint order) and starts at its parent, so a
+  bone is named by its end joint. Each bone has a rest frame whose z-axis points along it, built
+  from the rest pose and the ``up`` direction (y-axis as close to ``up`` as possible, x = y x z).
+* ``r`` holds one Rodrigues vector per bone. As in Alg. 1, the rotation of bone ``i`` moves every
+  bone whose end joint is a descendant of ``i``'s start joint; the first bone is the global
+  rotation. Joint-angle limits (Supp. Table 1) bound the components of ``r`` per bone; the
+  paper's table names the start joint (the "left shoulder" limit is the humerus, the bone
+  ``shoulder_left -> elbow_left``, named ``elbow_left`` here).
+* A marker attached to joint ``j`` moves rigidly with the bone ending at ``j``; its offset is in
+  that bone's frame. Markers attached to the root use the frame of the root's first bone.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from . import _native, _toml
+from ._arrays import as_float_array, as_index_array
+from ._io import atomic_write
+from .state import Normalization, StateMap
+
+FORMAT_NAME = "acm-rs-skeleton"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class BoneLengthConstraint:
+    """Anatomical bone-length prior (Supp. Table 2).
+
+    Either proportional to body weight (rat: ``length = slope * weight +- slope_sd * weight``,
+    cm per g) or absolute (mouse: ``length = mean +- sd``).
+    """
+
+    bone: str
+    slope: float | None = None
+    slope_sd: float | None = None
+    mean: float | None = None
+    sd: float | None = None
+
+    def __post_init__(self) -> None:
+        by_weight = self.slope is not None and self.slope_sd is not None
+        absolute = self.mean is not None and self.sd is not None
+        if by_weight == absolute:
+            raise ValueError(
+                f"bone-length constraint of {self.bone!r} needs either slope and slope_sd "
+                "or mean and sd"
+            )
+
+    def bounds(self, body_weight: float | None, sigma_factor: float = 10.0) -> tuple[float, float]:
+        """``(lower, upper)`` length bound; ``(-inf, inf)`` if it needs an unknown body weight."""
+        if self.mean is not None and self.sd is not None:
+            mean, sd = self.mean, self.sd
+        elif body_weight is None:
+            return (-math.inf, math.inf)
+        else:
+            if not body_weight > 0:
+                raise ValueError(f"body_weight must be > 0 g, got {body_weight}")
+            mean, sd = self.slope * body_weight, self.slope_sd * body_weight  # type: ignore[operator]
+        return (max(mean - sigma_factor * sd, 0.0), mean + sigma_factor * sd)
+
+
+class FKJacobian(NamedTuple):
+    """Forward kinematics of one pose with exact derivatives (all in world units / rad)."""
+
+    joints: np.ndarray  #: (J, 3)
+    markers: np.ndarray  #: (M, 3)
+    d_joints_d_pose: np.ndarray  #: (J, 3, 3 + 3 n_bones), w.r.t. ``[t, r.ravel()]``
+    d_markers_d_pose: np.ndarray  #: (M, 3, 3 + 3 n_bones)
+    d_joints_d_lengths: np.ndarray  #: (J, 3, n_bones)
+    d_markers_d_lengths: np.ndarray  #: (M, 3, n_bones)
+    d_markers_d_offsets: np.ndarray  #: (M, 3, 3): ``d m_k / d v_k`` (zero across markers)
+
+
+def _names(x: Sequence[str], what: str) -> tuple[str, ...]:
+    names = tuple(str(n) for n in x)
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise ValueError(f"{what} names must be unique; repeated: {dup}")
+    return names
+
+
+def _lookup(names: Sequence[str], name: str, what: str) -> int:
+    try:
+        return list(names).index(name)
+    except ValueError:
+        raise ValueError(f"unknown {what} {name!r}; known {what}s: {list(names)}") from None
+
+
+class Skeleton:
+    """A skeleton with markers, built with :meth:`from_rest_pose` or :meth:`load`.
+
+    Attributes
+    ----------
+    name : str
+        Model name.
+    units : str
+        Length unit of positions, lengths and offsets (e.g. ``"cm"``).
+    """
+
+    def __init__(
+        self,
+        *,
+        joint_names: Sequence[str],
+        parents: np.ndarray,
+        marker_names: Sequence[str],
+        marker_joints: np.ndarray,
+        native: _native.NativeSkeleton,
+        rest_root: np.ndarray,
+        up: np.ndarray,
+        joint_limits: np.ndarray,
+        symmetry: Mapping[str, Sequence[tuple[str, str]]],
+        marker_bounds: np.ndarray,
+        bone_length_constraints: Sequence[BoneLengthConstraint] = (),
+        name: str = "skeleton",
+        units: str = "",
+    ) -> None:
+        self._joint_names = _names(joint_names, "joint")
+        self._marker_names = _names(marker_names, "marker")
+        self._parents = np.asarray(parents, dtype=np.int64)
+        self._marker_joints = np.asarray(marker_joints, dtype=np.int64)
+        self._native = native
+        self._rest_root = np.asarray(rest_root, dtype=np.float64)
+        self._up = np.asarray(up, dtype=np.float64)
+        self._joint_limits = np.asarray(joint_limits, dtype=np.float64)
+        self._marker_bounds = np.asarray(marker_bounds, dtype=np.float64)
+        self._symmetry = {k: [tuple(p) for p in v] for k, v in symmetry.items()}
+        self._constraints = tuple(bone_length_constraints)
+        self.name = name
+        self.units = units
+        for c in self._constraints:
+            self.bone_index(c.bone)
+        for arr in (self._parents, self._marker_joints, self._joint_limits, self._marker_bounds):
+            arr.setflags(write=False)
+
+    # -- construction -----------------------------------------------------------------------
+    @classmethod
+    def from_rest_pose(
+        cls,
+        joint_names: Sequence[str],
+        parents: Sequence[int] | np.ndarray,
+        rest_joints: np.ndarray,
+        marker_names: Sequence[str],
+        marker_joints: Sequence[int | str] | np.ndarray,
+        marker_rest: np.ndarray,
+        *,
+        joint_limits: Mapping[str, np.ndarray] | np.ndarray | None = None,
+        symmetry: Mapping[str, Sequence[tuple[str, str]]] | None = None,
+        marker_bounds: Mapping[str, np.ndarray] | np.ndarray | None = None,
+        bone_length_constraints: Sequence[BoneLengthConstraint] = (),
+        up: Sequence[float] = (0.0, 1.0, 0.0),
+        name: str = "skeleton",
+        units: str = "",
+    ) -> Skeleton:
+        """Build a skeleton from joint and marker positions in a rest pose (all ``r = 0``).
+
+        Parameters
+        ----------
+        joint_names : sequence of str, length J
+        parents : array_like of int, shape (J,)
+            Parent joint index, ``-1`` for the single root. Must form a tree.
+        rest_joints : array_like, shape (J, 3)
+            Joint positions of the rest pose (world units).
+        marker_names : sequence of str, length M
+        marker_joints : array_like, shape (M,)
+            Joint (index or name) each marker is attached to; the marker moves rigidly with
+            the bone that ends at that joint.
+        marker_rest : array_like, shape (M, 3)
+            Marker positions of the rest pose (world units).
+        joint_limits : mapping or array, optional
+            Rotation limits in radians: a mapping from a bone's end-joint name to a (3, 2)
+            array of ``[lower, upper]`` per Rodrigues component, or an (n_bones, 3, 2) array.
+            Unlisted bones are unbounded; ``lower == upper`` fixes the component.
+        symmetry : mapping, optional
+            ``{"joints": [(left, right), ...], "markers": [(left, right), ...]}`` by name.
+        marker_bounds : mapping or array, optional
+            Box constraints of the marker offsets in the bone frame (sec. 6): mapping from a
+            marker name to a (3, 2) array, or an (M, 3, 2) array. Default unbounded.
+        bone_length_constraints : sequence of BoneLengthConstraint
+            Anatomical length priors (Supp. Table 2), by bone (end-joint) name.
+        up : (3,) sequence
+            Rest-pose direction used to orient bone frames (y-axis); ACM's body frame is
+            x = the animal's right, y = dorsal, z = caudal, so the default is ``(0, 1, 0)``.
+        name, units : str
+            Model name and length unit.
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes, NaN, a parent list that is not a tree, zero-length bones, unknown
+            names, or limits with ``lower > upper``.
+        """
+        jn = _names(joint_names, "joint")
+        mn = _names(marker_names, "marker")
+        par = as_index_array(parents, "parents")
+        if par.size != len(jn):
+            raise ValueError(f"parents has {par.size} entries for {len(jn)} joint names")
+        rj = as_float_array(rest_joints, "rest_joints", (len(jn), 3))
+        if rj.ndim != 2:
+            raise ValueError(f"rest_joints must have shape ({len(jn)}, 3), got {rj.shape}")
+        mj_raw = list(marker_joints)
+        mj = np.array(
+            [_lookup(jn, j, "joint") if isinstance(j, str) else int(j) for j in mj_raw],
+            dtype=np.int64,
+        )
+        if mj.size != len(mn):
+            raise ValueError(f"marker_joints has {mj.size} entries for {len(mn)} marker names")
+        mr = as_float_array(marker_rest, "marker_rest", (len(mn), 3)).reshape(len(mn), 3)
+        upv = as_float_array(up, "up", (3,)).ravel()
+        if np.linalg.norm(upv) == 0:
+            raise ValueError("up must be a non-zero vector")
+        native = _native.NativeSkeleton.from_rest_pose(par, rj, mj, mr, upv)
+        n_bones = int(native.n_bones)
+        bones = native.bones
+        bone_names = [jn[e] for e in bones[:, 1]]
+        limits = _limits_array(joint_limits, bone_names, n_bones)
+        bounds = _marker_bounds_array(marker_bounds, mn)
+        sym = _check_symmetry(symmetry or {}, jn, mn)
+        root = int(np.flatnonzero(par == -1)[0])
+        return cls(
+            joint_names=jn,
+            parents=par,
+            marker_names=mn,
+            marker_joints=mj,
+            native=native,
+            rest_root=rj[root],
+            up=upv,
+            joint_limits=limits,
+            symmetry=sym,
+            marker_bounds=bounds,
+            bone_length_constraints=bone_length_constraints,
+            name=name,
+            units=units,
+        )
+
+    def with_parameters(
+        self,
+        bone_lengths: np.ndarray | None = None,
+        marker_offsets: np.ndarray | None = None,
+    ) -> Skeleton:
+        """A copy with new bone lengths ``(n_bones,)`` and/or marker offsets ``(M, 3)``.
+
+        Rest frames, limits and constraints are kept (e.g. to hold a learned skeleton).
+        """
+        lengths = self.bone_lengths if bone_lengths is None else bone_lengths
+        offsets = self.marker_offsets if marker_offsets is None else marker_offsets
+        lengths = as_float_array(lengths, "bone_lengths", (self.n_bones,))
+        offsets = as_float_array(offsets, "marker_offsets", (self.n_markers, 3))
+        native = _native.NativeSkeleton(
+            self._parents,
+            self._native.rest_frames,
+            np.ascontiguousarray(lengths.reshape(self.n_bones)),
+            self._marker_joints,
+            np.ascontiguousarray(offsets.reshape(self.n_markers, 3)),
+        )
+        return Skeleton(
+            joint_names=self._joint_names,
+            parents=self._parents,
+            marker_names=self._marker_names,
+            marker_joints=self._marker_joints,
+            native=native,
+            rest_root=self._rest_root,
+            up=self._up,
+            joint_limits=self._joint_limits,
+            symmetry=self._symmetry,
+            marker_bounds=self._marker_bounds,
+            bone_length_constraints=self._constraints,
+            name=self.name,
+            units=self.units,
+        )
+
+    # -- structure --------------------------------------------------------------------------
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Joint names, length J."""
+        return self._joint_names
+
+    @property
+    def marker_names(self) -> tuple[str, ...]:
+        """Marker names, length M."""
+        return self._marker_names
+
+    @property
+    def parents(self) -> np.ndarray:
+        """(J,) parent joint index, -1 for the root."""
+        return self._parents
+
+    @property
+    def marker_joints(self) -> np.ndarray:
+        """(M,) joint index each marker is attached to."""
+        return self._marker_joints
+
+    @property
+    def bones(self) -> np.ndarray:
+        """(n_bones, 2) ``[start, end]`` joint indices; bone ``b`` ends at a non-root joint."""
+        return self._native.bones
+
+    @property
+    def bone_names(self) -> tuple[str, ...]:
+        """Bone names = names of their end joints."""
+        return tuple(self._joint_names[e] for e in self.bones[:, 1])
+
+    @property
+    def n_joints(self) -> int:
+        """Number of joints J."""
+        return len(self._joint_names)
+
+    @property
+    def n_bones(self) -> int:
+        """Number of bones (J - 1)."""
+        return int(self._native.n_bones)
+
+    @property
+    def n_markers(self) -> int:
+        """Number of markers M."""
+        return len(self._marker_names)
+
+    @property
+    def n_pose(self) -> int:
+        """Length of the flat pose ``[t (3), r (n_bones * 3)]``."""
+        return 3 + 3 * self.n_bones
+
+    @property
+    def bone_lengths(self) -> np.ndarray:
+        """(n_bones,) bone lengths (world units)."""
+        return self._native.lengths
+
+    @property
+    def marker_offsets(self) -> np.ndarray:
+        """(M, 3) marker offsets ``v`` in the frame of the bone their joint ends."""
+        return self._native.offsets
+
+    @property
+    def rest_frames(self) -> np.ndarray:
+        """(n_bones, 3, 3) rest orientations; columns are the bone axes, z along the bone."""
+        return self._native.rest_frames
+
+    @property
+    def marker_bones(self) -> np.ndarray:
+        """(M,) bone whose frame each marker offset is expressed in."""
+        return self._native.marker_bones
+
+    @property
+    def bone_links(self) -> np.ndarray:
+        """(n_bones, n_bones) bool: ``[i, j]`` if the rotation of bone i moves bone j (Alg. 1)."""
+        return self._native.bone_links()
+
+    @property
+    def up(self) -> np.ndarray:
+        """(3,) rest-pose up direction used for the bone frames."""
+        return self._up.copy()
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        """(n_bones, 3, 2) ``[lower, upper]`` per Rodrigues component (rad); +-inf if unbounded."""
+        return self._joint_limits
+
+    @property
+    def fixed_pose_mask(self) -> np.ndarray:
+        """(n_pose,) bool: pose entries fixed by ``[b, b]`` limits (not in the tracker state)."""
+        lim = self._joint_limits.reshape(-1, 2)
+        return np.concatenate([np.zeros(3, bool), lim[:, 0] == lim[:, 1]])
+
+    @property
+    def marker_bounds(self) -> np.ndarray:
+        """(M, 3, 2) box constraints of the marker offsets in the bone frame (sec. 6)."""
+        return self._marker_bounds
+
+    @property
+    def symmetry(self) -> dict[str, list[tuple[str, str]]]:
+        """``{"joints": [(left, right)], "markers": [(left, right)]}``."""
+        return {k: list(v) for k, v in self._symmetry.items()}
+
+    @property
+    def bone_length_constraints(self) -> tuple[BoneLengthConstraint, ...]:
+        """Anatomical bone-length priors."""
+        return self._constraints
+
+    def joint_index(self, name: str) -> int:
+        """Index of a joint by name (``ValueError`` listing the names if unknown)."""
+        return _lookup(self._joint_names, name, "joint")
+
+    def marker_index(self, name: str) -> int:
+        """Index of a marker by name (``ValueError`` listing the names if unknown)."""
+        return _lookup(self._marker_names, name, "marker")
+
+    def bone_index(self, name: str) -> int:
+        """Index of the bone ending at joint ``name``."""
+        j = self.joint_index(name)
+        hits = np.flatnonzero(self.bones[:, 1] == j)
+        if hits.size == 0:
+            raise ValueError(f"joint {name!r} is the root; no bone ends there")
+        return int(hits[0])
+
+    # -- kinematics -------------------------------------------------------------------------
+    def forward(
+        self,
+        t: np.ndarray,
+        r: np.ndarray,
+        *,
+        bone_lengths: np.ndarray | None = None,
+        marker_offsets: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Forward kinematics (Alg. 1) of one or many poses, in parallel in Rust.
+
+        Parameters
+        ----------
+        t : array_like, shape (T, 3) or (3,)
+            Global translation = root joint position (world units).
+        r : array_like, shape (T, n_bones, 3) or (n_bones, 3)
+            Rodrigues vector per bone (rad).
+        bone_lengths : array_like, shape (n_bones,), optional
+            Override of the skeleton's bone lengths.
+        marker_offsets : array_like, shape (M, 3), optional
+            Override of the marker offsets.
+
+        Returns
+        -------
+        joints : numpy.ndarray, shape (T, J, 3) or (J, 3)
+        markers : numpy.ndarray, shape (T, M, 3) or (M, 3)
+        """
+        tt = as_float_array(t, "t", (3,))
+        rr = as_float_array(r, "r", (self.n_bones, 3))
+        single = tt.ndim == 1
+        if single != (rr.ndim == 2) or tt.ndim > 2 or rr.ndim > 3:
+            raise ValueError(
+                f"t must be (T, 3) with r (T, {self.n_bones}, 3), or (3,) with "
+                f"({self.n_bones}, 3); got t {tt.shape} and r {rr.shape}"
+            )
+        if not single and tt.shape[0] != rr.shape[0]:
+            raise ValueError(f"t has {tt.shape[0]} frames but r has {rr.shape[0]}")
+        lengths = None
+        if bone_lengths is not None:
+            lengths = as_float_array(bone_lengths, "bone_lengths", (self.n_bones,))
+        offsets = None
+        if marker_offsets is not None:
+            offsets = as_float_array(marker_offsets, "marker_offsets", (self.n_markers, 3))
+        joints, markers = self._native.forward(
+            tt.reshape(-1, 3), rr.reshape(-1, self.n_bones, 3), lengths, offsets
+        )
+        if single:
+            return joints[0], markers[0]
+        return joints, markers
+
+    def forward_jacobian(
+        self,
+        t: np.ndarray,
+        r: np.ndarray,
+        *,
+        bone_lengths: np.ndarray | None = None,
+        marker_offsets: np.ndarray | None = None,
+    ) -> FKJacobian:
+        """Forward kinematics of one pose with exact Jacobians w.r.t. t, r, lengths and offsets.
+
+        Parameters
+        ----------
+        t : array_like, shape (3,)
+        r : array_like, shape (n_bones, 3)
+        bone_lengths, marker_offsets : optional overrides as in :meth:`forward`.
+
+        Returns
+        -------
+        FKJacobian
+        """
+        tt = as_float_array(t, "t", (3,))
+        rr = as_float_array(r, "r", (self.n_bones, 3))
+        if tt.shape != (3,) or rr.shape != (self.n_bones, 3):
+            raise ValueError(f"expected t (3,) and r ({self.n_bones}, 3), got {tt.shape}, {rr.shape}")
+        lengths = None
+        if bone_lengths is not None:
+            lengths = as_float_array(bone_lengths, "bone_lengths", (self.n_bones,))
+        offsets = None
+        if marker_offsets is not None:
+            offsets = as_float_array(marker_offsets, "marker_offsets", (self.n_markers, 3))
+        j, m, dp, dl, dv = self._native.forward_jacobian(tt, rr, lengths, offsets)
+        nj = self.n_joints
+        return FKJacobian(j, m, dp[:nj], dp[nj:], dl[:nj], dl[nj:], dv)
+
+    def rest_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(joints (J, 3), markers (M, 3))`` with every rotation zero."""
+        return self.forward(self._rest_root, np.zeros((self.n_bones, 3)))
+
+    # -- derived maps -----------------------------------------------------------------------
+    def symmetry_map(self) -> SymmetryMap:
+        """Alg. 2-3 maps between reduced (central + left) and full lengths/offsets."""
+        return SymmetryMap(self)
+
+    def state_map(
+        self, normalization: Normalization | None = None, joint_limits: bool = True
+    ) -> StateMap:
+        """Map between the tracker state (free entries) and ``(t, r)``; see :class:`StateMap`."""
+        return StateMap(self, normalization, joint_limits)
+
+    def bone_length_bounds(
+        self, body_weight: float | None = None, sigma_factor: float = 10.0
+    ) -> np.ndarray:
+        """(n_bones, 2) length bounds from the anatomical priors (Supp. Table 2).
+
+        Parameters
+        ----------
+        body_weight : float, optional
+            Body weight in g, needed for weight-proportional (rat) priors.
+        sigma_factor : float
+            Half-width in standard deviations (the authors' tool uses 10).
+
+        Returns
+        -------
+        numpy.ndarray
+            ``[lower, upper]`` per bone; ``(0, inf)`` where no prior applies.
+        """
+        out = np.tile([0.0, np.inf], (self.n_bones, 1))
+        for c in self._constraints:
+            lo, hi = c.bounds(body_weight, sigma_factor)
+            out[self.bone_index(c.bone)] = (max(lo, 0.0), hi)
+        return out
+
+    # -- files ------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """The skeleton as the TOML document described in ``docs/skeleton_format.md``."""
+        rest_j, rest_m = self.rest_pose()
+        limits_deg = np.degrees(self._joint_limits)
+        doc: dict = {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "name": self.name,
+            "units": self.units,
+            "angle_units": "deg",
+            "up": self._up.tolist(),
+            "joints": [],
+            "markers": [],
+        }
+        for j, n in enumerate(self._joint_names):
+            parent = self._parents[j]
+            doc["joints"].append(
+                {
+                    "name": n,
+                    "parent": "" if parent < 0 else self._joint_names[parent],
+                    "position": [_clean(v) for v in rest_j[j]],
+                }
+            )
+        for k, n in enumerate(self._marker_names):
+            entry = {
+                "name": n,
+                "joint": self._joint_names[self._marker_joints[k]],
+                "position": [_clean(v) for v in rest_m[k]],
+            }
+            b = self._marker_bounds[k]
+            if np.any(np.isfinite(b)):
+                entry["bounds"] = {ax: [_clean(b[i, 0]), _clean(b[i, 1])] for i, ax in enumerate("xyz")}
+            doc["markers"].append(entry)
+        lim_entries = []
+        for b, name in enumerate(self.bone_names):
+            lim = limits_deg[b]
+            if np.all(np.isinf(lim[:, 0])) and np.all(np.isinf(lim[:, 1])):
+                continue
+            lim_entries.append(
+                {"bone": name} | {ax: [_clean(lim[i, 0]), _clean(lim[i, 1])] for i, ax in enumerate("xyz")}
+            )
+        doc["joint_limits"] = lim_entries
+        doc["symmetry"] = {k: [list(p) for p in v] for k, v in self._symmetry.items()}
+        doc["bone_length_constraints"] = [
+            {k: v for k, v in vars(c).items() if v is not None} for c in self._constraints
+        ]
+        return doc
+
+    def save(self, path: str | Path) -> None:
+        """Write the skeleton as TOML (atomically)."""
+        with atomic_write(path, "w") as fh:
+            fh.write(_toml.dumps(self.to_dict()))
+
+    @classmethod
+    def from_dict(cls, doc: Mapping, source: str = "<dict>") -> Skeleton:
+        """Build a skeleton from a parsed skeleton document (see :meth:`to_dict`)."""
+        if doc.get("format") != FORMAT_NAME:
+            raise ValueError(f"{source}: not an acm-rs skeleton file (format = {doc.get('format')!r})")
+        if doc.get("version") != FORMAT_VERSION:
+            raise ValueError(f"{source}: unsupported skeleton file version {doc.get('version')!r}")
+        try:
+            joints = doc["joints"]
+            markers = doc.get("markers", [])
+            jn = [j["name"] for j in joints]
+            parents = [
+                -1 if j["parent"] in ("", None) else _lookup(jn, j["parent"], "joint")
+                for j in joints
+            ]
+            rest_j = np.array([j["position"] for j in joints], dtype=np.float64)
+            mn = [m["name"] for m in markers]
+            mj = [m["joint"] for m in markers]
+            rest_m = np.array([m["position"] for m in markers], dtype=np.float64).reshape(-1, 3)
+        except KeyError as exc:
+            raise ValueError(f"{source}: missing key {exc}") from None
+        deg = doc.get("angle_units", "deg")
+        if deg not in ("deg", "rad"):
+            raise ValueError(f"{source}: angle_units must be 'deg' or 'rad', got {deg!r}")
+        scale = math.pi / 180.0 if deg == "deg" else 1.0
+        limits = {}
+        for entry in doc.get("joint_limits", []):
+            lim = np.array([entry.get(ax, [-math.inf, math.inf]) for ax in "xyz"], dtype=float)
+            limits[entry["bone"]] = lim * scale
+        bounds = {
+            m["name"]: np.array([m["bounds"].get(ax, [-math.inf, math.inf]) for ax in "xyz"])
+            for m in markers
+            if "bounds" in m
+        }
+        constraints = [BoneLengthConstraint(**c) for c in doc.get("bone_length_constraints", [])]
+        return cls.from_rest_pose(
+            jn,
+            parents,
+            rest_j,
+            mn,
+            mj,
+            rest_m,
+            joint_limits=limits,
+            symmetry=doc.get("symmetry", {}),
+            marker_bounds=bounds,
+            bone_length_constraints=constraints,
+            up=doc.get("up", (0.0, 1.0, 0.0)),
+            name=doc.get("name", "skeleton"),
+            units=doc.get("units", ""),
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> Skeleton:
+        """Read a skeleton TOML file (see ``docs/skeleton_format.md``)."""
+        p = Path(path)
+        with p.open("rb") as fh:
+            try:
+                doc = tomllib.load(fh)
+            except tomllib.TOMLDecodeError as exc:
+                raise ValueError(f"{p}: invalid TOML: {exc}") from None
+        return cls.from_dict(doc, source=str(p))
+
+    def __repr__(self) -> str:
+        return (
+            f"Skeleton({self.name!r}: {self.n_joints} joints, {self.n_bones} bones, "
+            f"{self.n_markers} markers, {int((~self.fixed_pose_mask).sum())} free pose entries)"
+        )
+
+
+class SymmetryMap:
+    """Alg. 2-3: reduced parameters (central and left-sided) <-> full lengths and offsets."""
+
+    def __init__(self, skeleton: Skeleton) -> None:
+        sym = skeleton.symmetry
+        bone_pairs = [
+            (skeleton.bone_index(left), skeleton.bone_index(right))
+            for left, right in sym.get("joints", [])
+        ]
+        marker_pairs = [
+            (skeleton.marker_index(left), skeleton.marker_index(right))
+            for left, right in sym.get("markers", [])
+        ]
+        self._native = _native.NativeSymmetry(
+            skeleton.n_bones,
+            np.array(bone_pairs, dtype=np.int64).reshape(-1, 2),
+            skeleton.n_markers,
+            np.array(marker_pairs, dtype=np.int64).reshape(-1, 2),
+        )
+
+    @property
+    def n_reduced_bones(self) -> int:
+        """Number of free bone lengths ``n*_bone``."""
+        return int(self._native.n_reduced_bones)
+
+    @property
+    def n_reduced_markers(self) -> int:
+        """Number of free marker offsets ``n*_marker``."""
+        return int(self._native.n_reduced_markers)
+
+    def expand_lengths(self, reduced: np.ndarray) -> np.ndarray:
+        """Alg. 2: ``(n*_bone,)`` -> ``(n_bones,)``."""
+        return self._native.expand_lengths(as_float_array(reduced, "reduced lengths", (None,)))
+
+    def expand_offsets(self, reduced: np.ndarray) -> np.ndarray:
+        """Alg. 3: ``(n*_marker, 3)`` -> ``(M, 3)`` (right-side x mirrored)."""
+        return self._native.expand_offsets(as_float_array(reduced, "reduced offsets", (None, 3)))
+
+    def reduce_lengths(self, lengths: np.ndarray) -> np.ndarray:
+        """Pair-averaged inverse of Alg. 2."""
+        return self._native.reduce_lengths(as_float_array(lengths, "lengths", (None,)))
+
+    def reduce_offsets(self, offsets: np.ndarray) -> np.ndarray:
+        """Pair-averaged inverse of Alg. 3."""
+        return self._native.reduce_offsets(as_float_array(offsets, "offsets", (None, 3)))
+
+    def reduce_length_grad(self, grad: np.ndarray) -> np.ndarray:
+        """Gradient pull-back through Alg. 2 (transpose of the map)."""
+        return self._native.reduce_length_grad(as_float_array(grad, "gradient", (None,)))
+
+    def reduce_offset_grad(self, grad: np.ndarray) -> np.ndarray:
+        """Gradient pull-back through Alg. 3 (transpose of the map)."""
+        return self._native.reduce_offset_grad(as_float_array(grad, "gradient", (None, 3)))
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def _clean(v: float) -> float:
+    v = float(v)
+    if math.isfinite(v):
+        v = round(v, 12)
+        return 0.0 if v == 0 else v
+    return v
+
+
+def _limits_array(
+    limits: Mapping[str, np.ndarray] | np.ndarray | None, bone_names: list[str], n_bones: int
+) -> np.ndarray:
+    out = np.tile(np.array([-np.inf, np.inf]), (n_bones, 3, 1))
+    if limits is None:
+        return out
+    if isinstance(limits, Mapping):
+        for name, lim in limits.items():
+            if name not in bone_names:
+                raise ValueError(
+                    f"joint limit for unknown bone {name!r} (bones are named by their end "
+                    f"joint; known: {bone_names})"
+                )
+            arr = np.asarray(lim, dtype=np.float64)
+            if arr.shape != (3, 2):
+                raise ValueError(f"joint limit of {name!r} must have shape (3, 2), got {arr.shape}")
+            out[bone_names.index(name)] = arr
+    else:
+        arr = np.asarray(limits, dtype=np.float64)
+        if arr.shape != (n_bones, 3, 2):
+            raise ValueError(f"joint_limits must have shape ({n_bones}, 3, 2), got {arr.shape}")
+        out = arr.copy()
+    if np.any(np.isnan(out)):
+        raise ValueError("joint limits contain NaN")
+    bad = np.argwhere(out[..., 0] > out[..., 1])
+    if bad.size:
+        b, ax = bad[0]
+        raise ValueError(
+            f"joint limit of bone {bone_names[b]!r} axis {'xyz'[ax]} has lower > upper: {out[b, ax]}"
+        )
+    return out
+
+
+def _marker_bounds_array(
+    bounds: Mapping[str, np.ndarray] | np.ndarray | None, marker_names: Sequence[str]
+) -> np.ndarray:
+    m = len(marker_names)
+    out = np.tile(np.array([-np.inf, np.inf]), (m, 3, 1))
+    if bounds is None:
+        return out
+    if isinstance(bounds, Mapping):
+        for name, b in bounds.items():
+            k = _lookup(marker_names, name, "marker")
+            arr = np.asarray(b, dtype=np.float64)
+            if arr.shape != (3, 2):
+                raise ValueError(f"marker bounds of {name!r} must have shape (3, 2), got {arr.shape}")
+            out[k] = arr
+    else:
+        arr = np.asarray(bounds, dtype=np.float64)
+        if arr.shape != (m, 3, 2):
+            raise ValueError(f"marker_bounds must have shape ({m}, 3, 2), got {arr.shape}")
+        out = arr.copy()
+    if np.any(np.isnan(out)) or np.any(out[..., 0] > out[..., 1]):
+        raise ValueError("marker bounds must be intervals [lower <= upper] without NaN")
+    return out
+
+
+def _check_symmetry(
+    symmetry: Mapping[str, Sequence[tuple[str, str]]],
+    joint_names: Sequence[str],
+    marker_names: Sequence[str],
+) -> dict[str, list[tuple[str, str]]]:
+    unknown_keys = set(symmetry) - {"joints", "markers"}
+    if unknown_keys:
+        raise ValueError(f"symmetry keys must be 'joints' and/or 'markers', got {sorted(unknown_keys)}")
+    out: dict[str, list[tuple[str, str]]] = {"joints": [], "markers": []}
+    for key, names, what in (("joints", joint_names, "joint"), ("markers", marker_names, "marker")):
+        seen: set[str] = set()
+        for pair in symmetry.get(key, []):
+            if len(pair) != 2:
+                raise ValueError(f"symmetry {key} entries must be (left, right) pairs, got {pair}")
+            left, right = str(pair[0]), str(pair[1])
+            _lookup(names, left, what)
+            _lookup(names, right, what)
+            if left == right or left in seen or right in seen:
+                raise ValueError(f"{what} {left!r}/{right!r} repeated in symmetry pairs")
+            seen.update((left, right))
+            out[key].append((left, right))
+    return out

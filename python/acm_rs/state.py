@@ -1,0 +1,150 @@
+"""Normalisation (ACM supp. section 3.3) and the map between tracker state and pose (Alg. 10).
+
+The tracker's state holds only the *free* pose entries: the translation, and every rotation
+entry whose joint-angle limits are not ``[b, b]``. Entries are normalised (``t = c_t z``,
+``r = c_r z``) and, with ``joint_limits=True``, bounded entries go through the erf map of
+Alg. 10: ``r = b0 + (b1 - b0) / 2 * (1 + erf(sqrt(pi) / 2 * z))``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from . import _native
+from ._arrays import as_float_array
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .camera import CameraRig
+    from .skeleton import Skeleton
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """Normalisation constants of sec. 3.3 (defaults: the paper's values).
+
+    Attributes
+    ----------
+    translation : float
+        ``c_t`` in world units (50 for centimetres; use 500 for millimetres).
+    rotation : float
+        ``c_r`` in radians (pi / 2).
+    pixel : (float, float)
+        ``(c_1, c_2)`` in pixels, normally half the sensor size (640, 512).
+    """
+
+    translation: float = 50.0
+    rotation: float = math.pi / 2
+    pixel: tuple[float, float] = (640.0, 512.0)
+
+    def __post_init__(self) -> None:
+        for name, v in (
+            ("translation", self.translation),
+            ("rotation", self.rotation),
+            ("pixel[0]", self.pixel[0]),
+            ("pixel[1]", self.pixel[1]),
+        ):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"normalisation constant {name} must be finite and > 0, got {v}")
+
+    @classmethod
+    def from_image_size(cls, width: float, height: float, translation: float = 50.0) -> Normalization:
+        """Pixel scales from a sensor size ``(width, height)`` in px (``c = size / 2``)."""
+        return cls(translation=translation, pixel=(width / 2.0, height / 2.0))
+
+    def normalize_pixels(self, px: np.ndarray) -> np.ndarray:
+        """Eq. 11: ``(..., 2)`` pixels -> ``(u / c_1 - 1, v / c_2 - 1)``."""
+        return np.asarray(px, dtype=np.float64) / np.asarray(self.pixel) - 1.0
+
+    def denormalize_pixels(self, pn: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`normalize_pixels`."""
+        return (np.asarray(pn, dtype=np.float64) + 1.0) * np.asarray(self.pixel)
+
+    def _tuple(self) -> tuple[float, float, float, float]:
+        return (
+            float(self.translation),
+            float(self.rotation),
+            float(self.pixel[0]),
+            float(self.pixel[1]),
+        )
+
+
+class StateMap:
+    """Map between the tracker state ``z`` and the full pose ``(t, r)`` of a skeleton.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+        The skeleton whose joint limits define free, fixed and bounded entries.
+    normalization : Normalization, optional
+        Scales of sec. 3.3 (default: the paper's).
+    joint_limits : bool
+        Enforce limits with the erf map of Alg. 10 (otherwise bounded entries are linear;
+        fixed entries stay fixed either way).
+    """
+
+    def __init__(
+        self,
+        skeleton: Skeleton,
+        normalization: Normalization | None = None,
+        joint_limits: bool = True,
+    ) -> None:
+        self.skeleton = skeleton
+        self.normalization = normalization or Normalization()
+        lim = skeleton.joint_limits
+        self._native = _native.NativeStateMap(
+            np.ascontiguousarray(lim[..., 0]),
+            np.ascontiguousarray(lim[..., 1]),
+            self.normalization._tuple(),
+            bool(joint_limits),
+        )
+
+    @property
+    def n_state(self) -> int:
+        """Dimension of the state (50 for the authors' rat model)."""
+        return int(self._native.n_state)
+
+    @property
+    def free_indices(self) -> np.ndarray:
+        """(n_state,) indices of the free entries in the flat pose ``[t, r.ravel()]``."""
+        return self._native.free_indices
+
+    def to_pose(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """State ``(..., n_state)`` -> ``(t (..., 3), r (..., n_bones, 3))`` (Alg. 4 + Alg. 10)."""
+        zz = as_float_array(z, "z", (self.n_state,))
+        lead = zz.shape[:-1]
+        pose, _ = self._native.to_pose(zz.reshape(-1, self.n_state))
+        pose = pose.reshape(lead + (-1,))
+        return pose[..., :3], pose[..., 3:].reshape(lead + (self.skeleton.n_bones, 3))
+
+    def to_pose_derivative(self, z: np.ndarray) -> np.ndarray:
+        """``(..., n_state)`` diagonal derivative ``d pose[free[i]] / d z[i]``."""
+        zz = as_float_array(z, "z", (self.n_state,))
+        _, d = self._native.to_pose(zz.reshape(-1, self.n_state))
+        return d.reshape(zz.shape)
+
+    def from_pose(self, t: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Inverse map: ``t (..., 3)``, ``r (..., n_bones, 3)`` -> ``z (..., n_state)``.
+
+        Fixed entries are ignored; bounded entries at or beyond a limit are moved just inside.
+        """
+        tt = as_float_array(t, "t", (3,))
+        rr = as_float_array(r, "r", (self.skeleton.n_bones, 3))
+        if tt.shape[:-1] != rr.shape[:-2]:
+            raise ValueError(f"t {tt.shape} and r {rr.shape} have different leading shapes")
+        lead = tt.shape[:-1]
+        pose = np.concatenate([tt.reshape(-1, 3), rr.reshape(-1, 3 * self.skeleton.n_bones)], 1)
+        return self._native.from_pose(np.ascontiguousarray(pose)).reshape(lead + (self.n_state,))
+
+    def emission(self, rig: CameraRig, z: np.ndarray) -> np.ndarray:
+        """Alg. 4: states ``(n, n_state)`` -> normalised pixels ``(n, n_cams, M, 2)`` (eq. 11).
+
+        NaN where a marker is behind a camera.
+        """
+        zz = as_float_array(z, "z", (self.n_state,))
+        flat = zz.reshape(-1, self.n_state)
+        g = self._native.emission(self.skeleton._native, rig.get_params(), flat)
+        return g.reshape(zz.shape[:-1] + g.shape[1:])
