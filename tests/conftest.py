@@ -1,0 +1,78 @@
+"""Shared fixtures: seeded RNGs, a small branching skeleton and a 4-camera rig."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import acm_rs
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+
+
+def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(rvec, tvec) of a camera at ``center`` looking at ``target`` (OpenCV axes: y down)."""
+    z = target - center
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    rot = np.stack([x, y, z])  # rows: camera axes in world coordinates
+    return acm_rs.rodrigues_inverse(rot), -rot @ center
+
+
+def make_rig(distance: float = 40.0, n: int = 4) -> acm_rs.CameraRig:
+    """Cameras on a ring above the origin, looking at it (world: z up)."""
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n + 0.3
+        center = np.array([distance * np.cos(a), distance * np.sin(a), 0.6 * distance])
+        rvec, tvec = look_at(center, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+        k = np.array([[1200.0 + 20 * i, 0, 640.0 + 5 * i], [0, 1190.0, 512.0 - 4 * i], [0, 0, 1]])
+        dist = [-0.12 + 0.01 * i, 0.03, 0.0005 * i, -0.0003, 0.002]
+        cams.append(acm_rs.Camera(k, dist, rvec, tvec, (1280, 1024), f"cam{i}"))
+    return acm_rs.CameraRig(cams)
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture
+def rig() -> acm_rs.CameraRig:
+    return make_rig()
+
+
+@pytest.fixture(scope="session")
+def rat() -> acm_rs.Skeleton:
+    return acm_rs.models.rat()
+
+
+@pytest.fixture
+def small_skeleton() -> acm_rs.Skeleton:
+    """root -> a -> {b_left -> c_left, b_right -> c_right}; markers on several joints."""
+    joints = ["root", "a", "b_left", "c_left", "b_right", "c_right"]
+    parents = [-1, 0, 1, 2, 1, 4]
+    rest = np.array(
+        [[0, 0, 0], [0, 0, 2.0], [-1, -0.5, 2], [-1, -0.5, 3], [1, -0.5, 2], [1, -0.5, 3]],
+        dtype=float,
+    )
+    markers = ["m_root", "m_a", "m_left", "m_right"]
+    mj = ["root", "a", "c_left", "c_right"]
+    mrest = np.array([[0.1, 0.2, -0.1], [0, 0.4, 1.9], [-1.2, -0.4, 3.1], [1.2, -0.4, 3.1]])
+    return acm_rs.Skeleton.from_rest_pose(
+        joints,
+        parents,
+        rest,
+        markers,
+        mj,
+        mrest,
+        joint_limits={"c_left": np.radians([[-30, 60], [0, 0], [-10, 10]])},
+        symmetry={"joints": [("b_left", "b_right"), ("c_left", "c_right")],
+                  "markers": [("m_left", "m_right")]},
+        name="small",
+        units="cm",
+    )
