@@ -237,6 +237,8 @@ pub struct Projected {
     pub in_front: Vec<bool>,
 }
 
+/// Checks a flat `(n, 3)` point array: NaN marks a missing point (projected to NaN), while
+/// infinity is an error.
 fn points_from_flat(points: &[f64]) -> Result<usize> {
     if points.len() % 3 != 0 {
         return Err(AcmError::Shape(format!(
@@ -244,15 +246,25 @@ fn points_from_flat(points: &[f64]) -> Result<usize> {
             points.len()
         )));
     }
-    ensure_finite(points, "3D points")?;
+    if let Some(i) = points.iter().position(|v| v.is_infinite()) {
+        return Err(AcmError::NonFinite(format!(
+            "3D points: point {} has an infinite coordinate",
+            i / 3
+        )));
+    }
     Ok(points.len() / 3)
 }
 
+fn is_missing(x: &[f64]) -> bool {
+    x[0].is_nan() || x[1].is_nan() || x[2].is_nan()
+}
+
 /// Projects `n` world points (flat `(n, 3)`) into every camera, in parallel over points.
+/// A point with a NaN coordinate is missing: its pixels are NaN and `in_front` is false.
 ///
 /// # Errors
-/// Shape error if `points.len()` is not a multiple of 3; non-finite error for NaN/inf points
-/// (use NaN-free inputs; callers mask missing points before projecting).
+/// Shape error if `points.len()` is not a multiple of 3; non-finite error for infinite
+/// coordinates.
 pub fn project_points(cameras: &[Camera], points: &[f64]) -> Result<Projected> {
     let n = points_from_flat(points)?;
     let mut pixels = vec![f64::NAN; cameras.len() * n * 2];
@@ -263,6 +275,9 @@ pub fn project_points(cameras: &[Camera], points: &[f64]) -> Result<Projected> {
             .zip(in_front[c * n..(c + 1) * n].par_iter_mut())
             .zip(points.par_chunks(3))
             .for_each(|((px, ok), x)| {
+                if is_missing(x) {
+                    return;
+                }
                 if let Some(uv) = cam.project(&Vector3::new(x[0], x[1], x[2])) {
                     px[0] = uv.x;
                     px[1] = uv.y;
@@ -304,6 +319,9 @@ pub fn project_points_jacobian(cameras: &[Camera], points: &[f64]) -> Result<Pro
             )
             .zip(points.par_chunks(3))
             .for_each(|(((px, dp), dc), x)| {
+                if is_missing(x) {
+                    return;
+                }
                 if let Some(j) = cam.project_jacobian(&Vector3::new(x[0], x[1], x[2])) {
                     px[0] = j.pixel.x;
                     px[1] = j.pixel.y;
@@ -427,9 +445,15 @@ mod tests {
             Err(AcmError::Shape(_))
         ));
         assert!(matches!(
-            project_points(&cams, &[f64::NAN, 0.0, 1.0]),
+            project_points(&cams, &[f64::INFINITY, 0.0, 1.0]),
             Err(AcmError::NonFinite(_))
         ));
+        let missing = project_points_jacobian(&cams, &[f64::NAN, 0.0, 1.0]).unwrap();
+        assert!(missing
+            .pixels
+            .iter()
+            .chain(&missing.d_params)
+            .all(|v| v.is_nan()));
         let mut bad = *cams[0].params();
         bad[param::FX] = -1.0;
         assert!(matches!(

@@ -992,7 +992,7 @@ pub(crate) mod tests {
                 vec![],
             )
         };
-        assert!(matches!(f(&[-1, 0, 1]), Ok(_)));
+        assert!(f(&[-1, 0, 1]).is_ok());
         assert!(matches!(f(&[-1, -1, 1]), Err(AcmError::Invalid(_))));
         assert!(matches!(f(&[-1, 2, 1]), Err(AcmError::Invalid(_)))); // cycle 1↔2
         assert!(matches!(f(&[-1, 5]), Err(AcmError::Invalid(_))));

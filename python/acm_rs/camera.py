@@ -161,7 +161,7 @@ class Camera:
         Parameters
         ----------
         points : array_like, shape (..., 3)
-            Finite world coordinates.
+            World coordinates; NaN rows are missing points.
 
         Returns
         -------
@@ -170,9 +170,9 @@ class Camera:
             ``d(u, v) / d(x, y, z)``.
         d_params : numpy.ndarray, shape (..., 2, 15)
             ``d(u, v) / d params`` in the order of :data:`PARAM_NAMES`.
-            All three are NaN for points behind the camera.
+            All three are NaN for missing points and points behind the camera.
         """
-        pts = as_float_array(points, "points", (3,))
+        pts = as_float_array(points, "points", (3,), finite=False)
         lead = pts.shape[:-1]
         px, dp, dc = _native.project_jacobian(self._params[None, :], pts.reshape(-1, 3))
         return (
@@ -292,11 +292,8 @@ def _checked_params(params: np.ndarray) -> np.ndarray:
 
 def _project(params: np.ndarray, points: np.ndarray) -> np.ndarray:
     pts = as_float_array(points, "points", (3,), finite=False)
+    if np.isinf(pts).any():
+        raise ValueError("points contain infinity (use NaN for missing points)")
     lead = pts.shape[:-1]
-    flat = pts.reshape(-1, 3)
-    ok = np.all(np.isfinite(flat), axis=1)
-    px = np.full((params.shape[0], flat.shape[0], 2), np.nan)
-    if np.any(ok):
-        sub = np.ascontiguousarray(flat[ok])
-        px[:, ok, :] = _native.project(params, sub)[0]
+    px, _ = _native.project(params, pts.reshape(-1, 3))
     return px.reshape((params.shape[0],) + lead + (2,))

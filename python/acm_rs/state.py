@@ -137,7 +137,7 @@ class StateMap:
             raise ValueError(f"t {tt.shape} and r {rr.shape} have different leading shapes")
         lead = tt.shape[:-1]
         pose = np.concatenate([tt.reshape(-1, 3), rr.reshape(-1, 3 * self.skeleton.n_bones)], 1)
-        return self._native.from_pose(np.ascontiguousarray(pose)).reshape(lead + (self.n_state,))
+        return self._native.to_state(np.ascontiguousarray(pose)).reshape(lead + (self.n_state,))
 
     def emission(self, rig: CameraRig, z: np.ndarray) -> np.ndarray:
         """Alg. 4: states ``(n, n_state)`` -> normalised pixels ``(n, n_cams, M, 2)`` (eq. 11).

@@ -523,7 +523,7 @@ impl PyStateMap {
         ))
     }
     /// `(N, n_pose)` → `(N, n_state)`.
-    fn from_pose<'py>(&self, py: Python<'py>, pose: Arr<'py>) -> PyResult<Out<'py>> {
+    fn to_state<'py>(&self, py: Python<'py>, pose: Arr<'py>) -> PyResult<Out<'py>> {
         let np = self.inner.n_pose();
         let s = view(&pose, "pose", &[None, Some(np)])?;
         let n = s.len() / np;

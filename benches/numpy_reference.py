@@ -1,0 +1,340 @@
+"""Pure-NumPy reference of the ACM geometry: Rodrigues rotations, forward kinematics (Alg. 1)
+and the OpenCV camera projection (ACM supplement sections 1, 2.1 and 3.1).
+
+This module is the baseline of ``benches/bench_fk_projection.py`` and an independent check of
+the Rust core in ``tests/test_numpy_reference.py``. It uses nothing from :mod:`acm_rs` except
+the structure arrays of a :class:`acm_rs.Skeleton` (``parents``, ``bones``, ``rest_frames``,
+``bone_lengths``, ``marker_offsets``, ``marker_joints``, ``marker_bones``).
+
+Semantics (Alg. 1, eq. 8):
+
+* Bone ``b`` runs from ``bones[b, 0]`` (start joint) to ``bones[b, 1]`` (end joint).
+* The global orientation of bone ``j`` is ``R_j = Q_{a1} Q_{a2} ... Q_{ak} Rbar_j`` with
+  ``Q_i = rodrigues(r_i)``; the product runs, in increasing bone index, over every bone ``i``
+  whose start joint is an ancestor of (or equal to) the start joint of ``j``.
+* ``p_root = t`` and ``p_end(j) = p_start(j) + R_j[:, 2] * l_j``.
+* Marker ``k`` is ``m_k = p_{joint(k)} + R_{b(k)} v_k`` with ``b(k) = marker_bones[k]``.
+
+Implementation notes (speed, so that the benchmark compares against good NumPy):
+
+* Everything is vectorised over frames; only the 28 bones (or joints) are looped over.
+* Arrays are held "frames last" (e.g. ``(3, 3, T)`` for a stack of rotations) so that every
+  3x3 product is a handful of long contiguous vector operations, which is several times faster
+  than ``matmul`` on ``(T, 3, 3)`` stacks.
+* ``R_j`` is never formed: the accumulated rotation ``A_a = Q_{a1} ... Q_{ak}`` of each start
+  joint ``a`` is computed once (from its parent's, when the acting bones of the parent come
+  first in index order, which holds for root-first bone orders such as the bundled models) and
+  applied to the constant vectors ``Rbar_j e_z l_j`` and ``Rbar_{b(k)} v_k``.
+* Joint positions are the root translation plus a sum of bone vectors along the path from the
+  root, a single ``(J, B) @ (B, T)`` matrix product per coordinate.
+* Frames (and projected points) are processed in blocks that fit in the CPU cache.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Points at or closer than this depth (camera z) are "behind" the camera and give NaN pixels.
+MIN_DEPTH = 1e-9
+
+_FRAMES_PER_BLOCK = 2048
+_POINTS_PER_BLOCK = 16384
+
+
+# -- rotations ------------------------------------------------------------------------------
+def _rodrigues_components(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> list[list[np.ndarray]]:
+    """The nine entries ``R[i][k]`` of ``rodrigues((x, y, z))``, elementwise over any shape.
+
+    Uses ``R = cos(theta) I + a [r]x + b r r^T`` with ``a = sin(theta) / theta`` and
+    ``b = (1 - cos(theta)) / theta^2 = 2 sin^2(theta / 2) / theta^2``, both written with
+    ``np.sinc`` so that they are exact and branch-free at ``theta = 0``.
+    """
+    theta = np.sqrt(x * x + y * y + z * z)
+    c = np.cos(theta)
+    a = np.sinc(theta / np.pi)
+    half = np.sinc(theta / (2.0 * np.pi))
+    b = 0.5 * half * half
+    bx, by, bz = b * x, b * y, b * z
+    ax, ay, az = a * x, a * y, a * z
+    bxy, bxz, byz = bx * y, bx * z, by * z
+    return [
+        [c + bx * x, bxy - az, bxz + ay],
+        [bxy + az, c + by * y, byz - ax],
+        [bxz - ay, byz + ax, c + bz * z],
+    ]
+
+
+def rodrigues_np(r: np.ndarray) -> np.ndarray:
+    """Rotation matrices of Rodrigues vectors (ACM supp. eq. 2).
+
+    Parameters
+    ----------
+    r : array_like, shape (..., 3)
+        Rodrigues vectors ``theta * axis`` (rad).
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 3, 3)
+        ``R = I + sin(theta) K + (1 - cos(theta)) K^2`` with ``K`` the cross-product matrix of
+        the unit axis; the identity for ``r = 0``.
+    """
+    r = np.asarray(r, dtype=np.float64)
+    if r.shape[-1:] != (3,):
+        raise ValueError(f"r must have shape (..., 3), got {r.shape}")
+    comp = _rodrigues_components(r[..., 0], r[..., 1], r[..., 2])
+    out = np.empty(r.shape[:-1] + (3, 3))
+    for i in range(3):
+        for k in range(3):
+            out[..., i, k] = comp[i][k]
+    return out
+
+
+def _matmul_fl(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """``a @ b`` for frames-last stacks of 3x3 matrices, shapes ``(3, 3, T)``."""
+    return np.einsum("ijt,jkt->ikt", a, b, out=out)
+
+
+# -- forward kinematics ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class FKPlan:
+    """Structure of a skeleton prepared for :func:`forward_np` (constant across poses).
+
+    Attributes
+    ----------
+    n_joints, n_bones, n_markers : int
+    root : int
+        Root joint index.
+    starts : numpy.ndarray, shape (S,)
+        The joints that start at least one bone, parents before children.
+    steps : tuple of (int, tuple of int)
+        Per entry of ``starts``: the slot (index into ``starts``) whose accumulated rotation is
+        the left factor, or -1 for the identity, and the bones whose rotations are multiplied on
+        the right, in increasing index.
+    bone_slot : numpy.ndarray, shape (n_bones,)
+        Slot of each bone's start joint.
+    bone_vectors : numpy.ndarray, shape (n_bones, 3)
+        ``Rbar_b e_z l_b``: the bone vector in the rest orientation.
+    path : numpy.ndarray, shape (n_joints, n_bones)
+        1 where bone ``b`` lies on the path from the root to joint ``j``.
+    marker_joints : numpy.ndarray, shape (M,)
+    marker_slot : numpy.ndarray, shape (M,)
+        Slot of the start joint of each marker's bone.
+    marker_vectors : numpy.ndarray, shape (M, 3)
+        ``Rbar_{b(k)} v_k``: marker offsets rotated into the rest orientation.
+    """
+
+    n_joints: int
+    n_bones: int
+    n_markers: int
+    root: int
+    starts: np.ndarray
+    steps: tuple[tuple[int, tuple[int, ...]], ...]
+    bone_slot: np.ndarray
+    bone_vectors: np.ndarray
+    path: np.ndarray
+    marker_joints: np.ndarray
+    marker_slot: np.ndarray
+    marker_vectors: np.ndarray
+
+
+def _ancestors_or_self(parents: np.ndarray, j: int) -> list[int]:
+    out = [j]
+    while parents[out[-1]] >= 0:
+        out.append(int(parents[out[-1]]))
+        if len(out) > len(parents):
+            raise ValueError("parents do not form a tree")
+    return out
+
+
+def fk_plan(skeleton) -> FKPlan:
+    """Precompute the pose-independent structure of :func:`forward_np`.
+
+    Parameters
+    ----------
+    skeleton : acm_rs.Skeleton
+        Only its structure arrays are read.
+
+    Returns
+    -------
+    FKPlan
+    """
+    parents = np.asarray(skeleton.parents, dtype=np.int64)
+    bones = np.asarray(skeleton.bones, dtype=np.int64)
+    rest = np.asarray(skeleton.rest_frames, dtype=np.float64)
+    lengths = np.asarray(skeleton.bone_lengths, dtype=np.float64)
+    offsets = np.asarray(skeleton.marker_offsets, dtype=np.float64)
+    marker_joints = np.asarray(skeleton.marker_joints, dtype=np.int64)
+    marker_bones = np.asarray(skeleton.marker_bones, dtype=np.int64)
+    n_joints, n_bones = len(parents), len(bones)
+    root = int(np.flatnonzero(parents < 0)[0])
+    anc = [_ancestors_or_self(parents, j) for j in range(n_joints)]
+
+    # Bones acting on a joint's outgoing bones, in increasing index (the Alg. 1 product).
+    start_set = sorted(set(bones[:, 0].tolist()), key=lambda a: len(anc[a]))
+    acting = {a: [i for i in range(n_bones) if bones[i, 0] in anc[a]] for a in start_set}
+    slot = {a: s for s, a in enumerate(start_set)}
+    steps = []
+    for a in start_set:
+        own = [i for i in range(n_bones) if bones[i, 0] == a]
+        p = int(parents[a])
+        if p >= 0 and acting[p] and min(own) > max(acting[p]):
+            steps.append((slot[p], tuple(own)))  # A_a = A_parent Q_own...
+        else:
+            steps.append((-1, tuple(acting[a])))  # general order: the full product
+
+    path = np.zeros((n_joints, n_bones))
+    bone_of_end = {int(e): b for b, e in enumerate(bones[:, 1])}
+    for j in range(n_joints):
+        for a in anc[j]:
+            if a in bone_of_end:
+                path[j, bone_of_end[a]] = 1.0
+    return FKPlan(
+        n_joints=n_joints,
+        n_bones=n_bones,
+        n_markers=len(marker_joints),
+        root=root,
+        starts=np.array(start_set, dtype=np.int64),
+        steps=tuple(steps),
+        bone_slot=np.array([slot[int(a)] for a in bones[:, 0]], dtype=np.int64),
+        bone_vectors=rest[:, :, 2] * lengths[:, None],
+        path=path,
+        marker_joints=marker_joints,
+        marker_slot=np.array([slot[int(bones[b, 0])] for b in marker_bones], dtype=np.int64),
+        marker_vectors=np.einsum("kij,kj->ki", rest[marker_bones], offsets),
+    )
+
+
+def _forward_block(plan: FKPlan, t: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frames-last forward kinematics: ``t (3, T)``, ``r (3, B, T)`` -> ``(3, J, T), (3, M, T)``."""
+    n_t = t.shape[1]
+    comp = _rodrigues_components(r[0], r[1], r[2])  # nine (B, T) arrays
+    q = np.empty((3, 3, plan.n_bones, n_t))
+    for i in range(3):
+        for k in range(3):
+            q[i, k] = comp[i][k]
+    acc = np.empty((len(plan.starts), 3, 3, n_t))  # A_a per start joint, frames last
+    for s, (base, own) in enumerate(plan.steps):
+        factors = ([acc[base]] if base >= 0 else []) + [q[:, :, b] for b in own]
+        if not factors:
+            acc[s] = np.eye(3)[:, :, None]
+        elif len(factors) == 1:
+            acc[s] = factors[0]
+        else:
+            cur = factors[0]
+            for f in factors[1:-1]:
+                cur = _matmul_fl(cur, f)
+            _matmul_fl(cur, factors[-1], out=acc[s])
+    # Bone vectors R_j e_z l_j = A_start(j) (Rbar_j e_z l_j), then joints by path sums.
+    dirs = np.einsum("bijt,bj->ibt", acc[plan.bone_slot], plan.bone_vectors)
+    joints = np.matmul(plan.path, dirs)  # (3, J, T)
+    joints += t[:, None, :]
+    markers = np.einsum("kijt,kj->ikt", acc[plan.marker_slot], plan.marker_vectors)
+    markers += joints[:, plan.marker_joints]
+    return joints, markers
+
+
+def forward_np(
+    skeleton,
+    t: np.ndarray,
+    r: np.ndarray,
+    *,
+    plan: FKPlan | None = None,
+    block: int = _FRAMES_PER_BLOCK,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Forward kinematics (Alg. 1) of many poses, vectorised over frames.
+
+    Parameters
+    ----------
+    skeleton : acm_rs.Skeleton
+        Source of the structure arrays (ignored when ``plan`` is given).
+    t : array_like, shape (T, 3)
+        Root joint positions (world units).
+    r : array_like, shape (T, n_bones, 3)
+        Rodrigues vector per bone (rad).
+    plan : FKPlan, optional
+        Result of :func:`fk_plan` for ``skeleton``, to skip the structure set-up.
+    block : int
+        Frames processed at once (a cache-size trade-off; the result does not depend on it).
+
+    Returns
+    -------
+    joints : numpy.ndarray, shape (T, J, 3)
+    markers : numpy.ndarray, shape (T, M, 3)
+    """
+    if plan is None:
+        plan = fk_plan(skeleton)
+    t = np.asarray(t, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    if t.ndim != 2 or t.shape[1] != 3 or r.shape != (t.shape[0], plan.n_bones, 3):
+        raise ValueError(
+            f"expected t (T, 3) and r (T, {plan.n_bones}, 3), got {t.shape} and {r.shape}"
+        )
+    n_t = t.shape[0]
+    joints = np.empty((n_t, plan.n_joints, 3))
+    markers = np.empty((n_t, plan.n_markers, 3))
+    for f0 in range(0, n_t, block):
+        f1 = min(f0 + block, n_t)
+        tb = np.ascontiguousarray(t[f0:f1].T)
+        rb = np.ascontiguousarray(r[f0:f1].transpose(2, 1, 0))
+        jb, mb = _forward_block(plan, tb, rb)
+        joints[f0:f1] = jb.transpose(2, 1, 0)
+        markers[f0:f1] = mb.transpose(2, 1, 0)
+    return joints, markers
+
+
+# -- projection -----------------------------------------------------------------------------
+def project_np(
+    params: np.ndarray, points: np.ndarray, *, block: int = _POINTS_PER_BLOCK
+) -> np.ndarray:
+    """Project world points into cameras with the OpenCV model (ACM supp. eqs. 4-6).
+
+    ``x_cam = R(rvec) x + tvec``; ``x' = X / Z``, ``y' = Y / Z``, ``r2 = x'^2 + y'^2``;
+    ``x'' = x' (1 + k1 r2 + k2 r2^2 + k3 r2^3) + 2 p1 x' y' + p2 (r2 + 2 x'^2)``,
+    ``y'' = y' (1 + k1 r2 + k2 r2^2 + k3 r2^3) + p1 (r2 + 2 y'^2) + 2 p2 x' y'``;
+    ``u = fx x'' + cx``, ``v = fy y'' + cy``.
+
+    Parameters
+    ----------
+    params : array_like, shape (C, 15)
+        Per camera ``[rx, ry, rz, tx, ty, tz, fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
+    points : array_like, shape (..., 3)
+        World coordinates.
+    block : int
+        Points processed at once (the result does not depend on it).
+
+    Returns
+    -------
+    numpy.ndarray, shape (C, ..., 2)
+        Pixels ``(u, v)``; NaN for NaN points and for points with depth ``Z <= MIN_DEPTH``.
+    """
+    params = np.asarray(params, dtype=np.float64)
+    if params.ndim != 2 or params.shape[1] != 15:
+        raise ValueError(f"params must have shape (C, 15), got {params.shape}")
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape[-1:] != (3,):
+        raise ValueError(f"points must have shape (..., 3), got {points.shape}")
+    lead = points.shape[:-1]
+    flat = points.reshape(-1, 3)
+    n_cam, n_pts = params.shape[0], flat.shape[0]
+    rot = rodrigues_np(params[:, 0:3])  # (C, 3, 3)
+    tvec = params[:, 3:6, None]  # (C, 3, 1)
+    fx, fy, cx, cy, k1, k2, p1, p2, k3 = (params[:, i, None] for i in range(6, 15))
+    out = np.empty((n_cam, n_pts, 2))
+    for n0 in range(0, n_pts, block):
+        n1 = min(n0 + block, n_pts)
+        cam = np.matmul(rot, flat[n0:n1].T)  # (C, 3, n)
+        cam += tvec
+        z = cam[:, 2]
+        z = np.where(z > MIN_DEPTH, z, np.nan)
+        x = cam[:, 0] / z
+        y = cam[:, 1] / z
+        xx, yy, xy = x * x, y * y, x * y
+        r2 = xx + yy
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
+        yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
+        out[:, n0:n1, 0] = fx * xd + cx
+        out[:, n0:n1, 1] = fy * yd + cy
+    return out.reshape((n_cam,) + lead + (2,))

@@ -1,0 +1,81 @@
+"""The ``acm-rs`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from . import __version__
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import run_demo
+
+    res = run_demo(args.out, frames=args.frames, seed=args.seed)
+    rate = res.n_frames / res.seconds if res.seconds > 0 else float("inf")
+    print(f"acm-rs demo: rat model (29 joints, 43 markers) in a 4-camera rig -> {res.out}/")
+    print(
+        f"  forward kinematics + projection of {res.n_frames:,} poses into 4 cameras: "
+        f"{res.seconds:.3f} s ({rate:,.0f} poses/s)"
+    )
+    for f in res.files:
+        print(f"  wrote {f}")
+    return 0
+
+
+def _cmd_model(args: argparse.Namespace) -> int:
+    from . import models
+
+    if args.name is None:
+        print("bundled models:", ", ".join(models.available()))
+        return 0
+    sk = models.load(args.name)
+    print(sk)
+    print(f"  units: {sk.units}; state dimension: {sk.state_map().n_state}")
+    print(f"  bones: {', '.join(sk.bone_names)}")
+    if args.save:
+        sk.save(args.save)
+        print(f"  wrote {args.save}")
+    if args.plot:
+        from .plotting import save_figure, skeleton_views
+
+        j, m = sk.rest_pose()
+        save_figure(skeleton_views(sk, j, m, f"{sk.name}: rest pose"), args.plot)
+        print(f"  wrote {args.plot}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``acm-rs``."""
+    p = argparse.ArgumentParser(prog="acm-rs", description=__doc__)
+    p.add_argument("--version", action="version", version=f"acm-rs {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("demo", help="pose the rat model in a 4-camera rig and save pictures")
+    d.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
+    d.add_argument("--frames", type=int, default=100_000, help="poses for the timing")
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(func=_cmd_demo)
+    m = sub.add_parser("model", help="list the bundled models or describe one")
+    m.add_argument("name", nargs="?", help="model name (rat, mouse)")
+    m.add_argument("--save", help="write the model as a skeleton TOML file")
+    m.add_argument("--plot", help="write a PNG of the rest pose")
+    m.set_defaults(func=_cmd_model)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``acm-rs`` command."""
+    args = build_parser().parse_args(argv)
+    if getattr(args, "frames", 1) < 1:
+        print("acm-rs: --frames must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        return int(args.func(args))
+    except (ValueError, OSError) as exc:
+        print(f"acm-rs: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
