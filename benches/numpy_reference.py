@@ -15,6 +15,11 @@ Semantics (Alg. 1, eq. 8):
 * ``p_root = t`` and ``p_end(j) = p_start(j) + R_j[:, 2] * l_j``.
 * Marker ``k`` is ``m_k = p_{joint(k)} + R_{b(k)} v_k`` with ``b(k) = marker_bones[k]``.
 
+For a root-first bone order (every bone after the bone ending at its start joint, as in the
+bundled rat and mouse models) increasing index is root-to-leaf order, which is what acm_rs
+composes. For other orders this module keeps the literal index order of Alg. 1, which then
+differs from acm_rs.
+
 Implementation notes (speed, so that the benchmark compares against good NumPy):
 
 * Everything is vectorised over frames; only the 28 bones (or joints) are looped over.
@@ -39,31 +44,49 @@ import numpy as np
 #: Points at or closer than this depth (camera z) are "behind" the camera and give NaN pixels.
 MIN_DEPTH = 1e-9
 
-_FRAMES_PER_BLOCK = 2048
-_POINTS_PER_BLOCK = 16384
+_FRAMES_PER_BLOCK = 512
+_POINTS_PER_BLOCK = 8192
 
 
 # -- rotations ------------------------------------------------------------------------------
-def _rodrigues_components(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> list[list[np.ndarray]]:
-    """The nine entries ``R[i][k]`` of ``rodrigues((x, y, z))``, elementwise over any shape.
+def _rodrigues_frames_last(r: np.ndarray) -> np.ndarray:
+    """Rotation matrices of Rodrigues vectors held frames last: ``(3, ...)`` -> ``(3, 3, ...)``.
 
     Uses ``R = cos(theta) I + a [r]x + b r r^T`` with ``a = sin(theta) / theta`` and
-    ``b = (1 - cos(theta)) / theta^2 = 2 sin^2(theta / 2) / theta^2``, both written with
-    ``np.sinc`` so that they are exact and branch-free at ``theta = 0``.
+    ``b = (1 - cos(theta)) / theta^2``, written with the half angle: ``h = sin(theta/2) / theta``
+    (``h(0) = 1/2``), ``a = 2 h cos(theta/2)``, ``b = 2 h^2`` and ``cos(theta) = 1 - b theta^2``.
+    This is exact at ``theta = 0``, free of the cancellation in ``1 - cos(theta)``, and needs
+    only one ``sin`` and one ``cos`` per rotation (NumPy's float64 ``sin``/``cos`` cost far more
+    than its arithmetic).
     """
-    theta = np.sqrt(x * x + y * y + z * z)
-    c = np.cos(theta)
-    a = np.sinc(theta / np.pi)
-    half = np.sinc(theta / (2.0 * np.pi))
-    b = 0.5 * half * half
+    x, y, z = r[0], r[1], r[2]
+    theta2 = x * x
+    theta2 += y * y
+    theta2 += z * z
+    theta = np.sqrt(theta2)
+    half = 0.5 * theta
+    h = np.divide(np.sin(half), theta, out=np.full_like(theta, 0.5), where=theta > 0.0)
+    a = np.cos(half, out=half)
+    a *= h
+    a *= 2.0
+    b = np.multiply(h, h, out=h)
+    b *= 2.0
+    c = np.multiply(b, theta2, out=theta2)
+    np.subtract(1.0, c, out=c)
     bx, by, bz = b * x, b * y, b * z
     ax, ay, az = a * x, a * y, a * z
-    bxy, bxz, byz = bx * y, bx * z, by * z
-    return [
-        [c + bx * x, bxy - az, bxz + ay],
-        [bxy + az, c + by * y, byz - ax],
-        [bxz - ay, byz + ax, c + bz * z],
-    ]
+    out = np.empty((3, 3) + x.shape)
+    np.multiply(bx, x, out=out[0, 0])
+    out[0, 0] += c
+    np.multiply(by, y, out=out[1, 1])
+    out[1, 1] += c
+    np.multiply(bz, z, out=out[2, 2])
+    out[2, 2] += c
+    # Off-diagonal pairs (i, k) with [r]x[i, k] = -a r_l and [r]x[k, i] = +a r_l.
+    for i, k, bik, arl in ((0, 1, bx * y, az), (1, 2, by * z, ax), (2, 0, bz * x, ay)):
+        np.subtract(bik, arl, out=out[i, k])
+        np.add(bik, arl, out=out[k, i])
+    return out
 
 
 def rodrigues_np(r: np.ndarray) -> np.ndarray:
@@ -83,12 +106,8 @@ def rodrigues_np(r: np.ndarray) -> np.ndarray:
     r = np.asarray(r, dtype=np.float64)
     if r.shape[-1:] != (3,):
         raise ValueError(f"r must have shape (..., 3), got {r.shape}")
-    comp = _rodrigues_components(r[..., 0], r[..., 1], r[..., 2])
-    out = np.empty(r.shape[:-1] + (3, 3))
-    for i in range(3):
-        for k in range(3):
-            out[..., i, k] = comp[i][k]
-    return out
+    rot = _rodrigues_frames_last(np.moveaxis(r, -1, 0))
+    return np.ascontiguousarray(np.moveaxis(rot, (0, 1), (-2, -1)))
 
 
 def _matmul_fl(a: np.ndarray, b: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -209,17 +228,11 @@ def fk_plan(skeleton) -> FKPlan:
 def _forward_block(plan: FKPlan, t: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Frames-last forward kinematics: ``t (3, T)``, ``r (3, B, T)`` -> ``(3, J, T), (3, M, T)``."""
     n_t = t.shape[1]
-    comp = _rodrigues_components(r[0], r[1], r[2])  # nine (B, T) arrays
-    q = np.empty((3, 3, plan.n_bones, n_t))
-    for i in range(3):
-        for k in range(3):
-            q[i, k] = comp[i][k]
+    q = _rodrigues_frames_last(r)  # (3, 3, B, T)
     acc = np.empty((len(plan.starts), 3, 3, n_t))  # A_a per start joint, frames last
     for s, (base, own) in enumerate(plan.steps):
         factors = ([acc[base]] if base >= 0 else []) + [q[:, :, b] for b in own]
-        if not factors:
-            acc[s] = np.eye(3)[:, :, None]
-        elif len(factors) == 1:
+        if len(factors) == 1:
             acc[s] = factors[0]
         else:
             cur = factors[0]
@@ -263,6 +276,8 @@ def forward_np(
     joints : numpy.ndarray, shape (T, J, 3)
     markers : numpy.ndarray, shape (T, M, 3)
     """
+    if block < 1:
+        raise ValueError(f"block must be >= 1, got {block}")
     if plan is None:
         plan = fk_plan(skeleton)
     t = np.asarray(t, dtype=np.float64)
@@ -321,20 +336,44 @@ def project_np(
     rot = rodrigues_np(params[:, 0:3])  # (C, 3, 3)
     tvec = params[:, 3:6, None]  # (C, 3, 1)
     fx, fy, cx, cy, k1, k2, p1, p2, k3 = (params[:, i, None] for i in range(6, 15))
+    two_p1, two_p2 = 2.0 * p1, 2.0 * p2
     out = np.empty((n_cam, n_pts, 2))
     for n0 in range(0, n_pts, block):
         n1 = min(n0 + block, n_pts)
-        cam = np.matmul(rot, flat[n0:n1].T)  # (C, 3, n)
+        cam = np.matmul(rot, np.ascontiguousarray(flat[n0:n1].T))  # (C, 3, n)
         cam += tvec
         z = cam[:, 2]
-        z = np.where(z > MIN_DEPTH, z, np.nan)
-        x = cam[:, 0] / z
-        y = cam[:, 1] / z
-        xx, yy, xy = x * x, y * y, x * y
-        r2 = xx + yy
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
-        yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
-        out[:, n0:n1, 0] = fx * xd + cx
-        out[:, n0:n1, 1] = fy * yd + cy
+        inv_z = np.divide(1.0, z, out=np.full_like(z, np.nan), where=z > MIN_DEPTH)
+        x = cam[:, 0]
+        x *= inv_z  # x'
+        y = cam[:, 1]
+        y *= inv_z  # y'
+        xy = x * y
+        tx = x * x
+        ty = y * y
+        r2 = tx + ty
+        radial = k3 * r2  # 1 + k1 r2 + k2 r2^2 + k3 r2^3 (Horner)
+        radial += k2
+        radial *= r2
+        radial += k1
+        radial *= r2
+        radial += 1.0
+        tx *= 2.0  # p2 (r2 + 2 x'^2)
+        tx += r2
+        tx *= p2
+        ty *= 2.0  # p1 (r2 + 2 y'^2)
+        ty += r2
+        ty *= p1
+        x *= radial  # x''
+        x += tx
+        x += np.multiply(two_p1, xy, out=tx)
+        y *= radial  # y''
+        y += ty
+        y += np.multiply(two_p2, xy, out=ty)
+        x *= fx
+        x += cx
+        y *= fy
+        y += cy
+        out[:, n0:n1, 0] = x
+        out[:, n0:n1, 1] = y
     return out.reshape((n_cam,) + lead + (2,))

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import acm_rs
 import numpy as np
 import pytest
-
-import acm_rs
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 
 
-def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    center: np.ndarray, target: np.ndarray, up: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(rvec, tvec) of a camera at ``center`` looking at ``target`` (OpenCV axes: y down)."""
     z = target - center
     z = z / np.linalg.norm(z)
@@ -71,8 +72,10 @@ def small_skeleton() -> acm_rs.Skeleton:
         mj,
         mrest,
         joint_limits={"c_left": np.radians([[-30, 60], [0, 0], [-10, 10]])},
-        symmetry={"joints": [("b_left", "b_right"), ("c_left", "c_right")],
-                  "markers": [("m_left", "m_right")]},
+        symmetry={
+            "joints": [("b_left", "b_right"), ("c_left", "c_right")],
+            "markers": [("m_left", "m_right")],
+        },
         name="small",
         units="cm",
     )

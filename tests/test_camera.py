@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
+import acm_rs
 import cv2
 import numpy as np
 import pytest
-
-import acm_rs
 
 
 def cv2_project(cam: acm_rs.Camera, pts: np.ndarray) -> np.ndarray:
@@ -68,9 +67,12 @@ def test_jacobians_vs_central_differences(rng, rig):
             pp[k] += step
             pm[k] -= step
             fd = (
-                acm_rs.Camera.from_params(pp).project(pts) - acm_rs.Camera.from_params(pm).project(pts)
+                acm_rs.Camera.from_params(pp).project(pts)
+                - acm_rs.Camera.from_params(pm).project(pts)
             ) / (2 * step)
-            np.testing.assert_allclose(dc[..., k], fd, rtol=1e-5, atol=1e-4, err_msg=acm_rs.PARAM_NAMES[k])
+            np.testing.assert_allclose(
+                dc[..., k], fd, rtol=1e-5, atol=1e-4, err_msg=acm_rs.PARAM_NAMES[k]
+            )
 
 
 def test_params_round_trip_and_dict(rig):

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
+import acm_rs
 import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-
-import acm_rs
 
 finite = st.floats(-7.0, 7.0, allow_nan=False)
 
@@ -20,7 +19,7 @@ def test_matches_cv2_rodrigues(rng):
     r[1] = [np.pi, 0, 0]
     r[2] = [1e-9, -2e-9, 0]
     ours = acm_rs.rodrigues(r)
-    for v, m in zip(r, ours):
+    for v, m in zip(r, ours, strict=True):
         ref, _ = cv2.Rodrigues(v.reshape(3, 1))
         np.testing.assert_allclose(m, ref, atol=1e-12)
 
@@ -32,7 +31,9 @@ def test_inverse_matches_cv2(rng):
     np.testing.assert_allclose(back, r, atol=1e-10)
     for v in r[:20]:
         ref, _ = cv2.Rodrigues(acm_rs.rodrigues(v))
-        np.testing.assert_allclose(acm_rs.rodrigues_inverse(acm_rs.rodrigues(v)), ref.ravel(), atol=1e-9)
+        np.testing.assert_allclose(
+            acm_rs.rodrigues_inverse(acm_rs.rodrigues(v)), ref.ravel(), atol=1e-9
+        )
 
 
 def test_leading_shapes_are_kept(rng):

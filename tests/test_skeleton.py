@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
+import acm_rs
 import numpy as np
 import pytest
-
-import acm_rs
 
 
 def random_pose(rng, sk, n=None, scale=1.0):
@@ -28,9 +27,13 @@ def test_bone_lengths_and_marker_distances_preserved(rng, rat):
     joints, markers = rat.forward(t, r)
     bones = rat.bones
     lengths = np.linalg.norm(joints[:, bones[:, 1]] - joints[:, bones[:, 0]], axis=-1)
-    np.testing.assert_allclose(lengths, np.broadcast_to(rat.bone_lengths, lengths.shape), atol=1e-12)
+    np.testing.assert_allclose(
+        lengths, np.broadcast_to(rat.bone_lengths, lengths.shape), atol=1e-12
+    )
     d = np.linalg.norm(markers - joints[:, rat.marker_joints], axis=-1)
-    np.testing.assert_allclose(d, np.broadcast_to(np.linalg.norm(rat.marker_offsets, axis=1), d.shape), atol=1e-12)
+    np.testing.assert_allclose(
+        d, np.broadcast_to(np.linalg.norm(rat.marker_offsets, axis=1), d.shape), atol=1e-12
+    )
     np.testing.assert_allclose(joints[:, 0], t, atol=1e-15)
 
 
@@ -54,14 +57,22 @@ def test_alg1_order_eq8(rat):
     b = rat.bone_index("elbow_left")
     acting = [i for i in range(rat.n_bones) if rat.bone_links[i, b]]
     names = [rat.bone_names[i] for i in acting]
-    assert names == ["spine_005", "spine_004", "shoulder_left", "shoulder_right", "spine_003",
-                     "elbow_left"]
+    assert names == [
+        "spine_005",
+        "spine_004",
+        "shoulder_left",
+        "shoulder_right",
+        "spine_003",
+        "elbow_left",
+    ]
     rot = np.eye(3)
     for i in acting:
         rot = rot @ acm_rs.rodrigues(r[i])
     rot = rot @ rat.rest_frames[b]
     start, end = rat.bones[b]
-    np.testing.assert_allclose(joints[end] - joints[start], rot[:, 2] * rat.bone_lengths[b], atol=1e-12)
+    np.testing.assert_allclose(
+        joints[end] - joints[start], rot[:, 2] * rat.bone_lengths[b], atol=1e-12
+    )
 
 
 def test_marker_on_root_moves_with_first_rotation(rng, small_skeleton):
@@ -120,8 +131,10 @@ def test_jacobians_vs_central_differences(rng, rat):
             e = np.zeros_like(offsets)
             e[k, c] = h
             fd = (flat(t, r, v_=offsets + e) - flat(t, r, v_=offsets - e)) / (2 * h)
-            np.testing.assert_allclose(jac.d_markers_d_offsets[k, :, c], fd[rat.n_joints + k], atol=2e-7)
-            others = np.delete(fd[rat.n_joints:], k, axis=0)
+            np.testing.assert_allclose(
+                jac.d_markers_d_offsets[k, :, c], fd[rat.n_joints + k], atol=2e-7
+            )
+            others = np.delete(fd[rat.n_joints :], k, axis=0)
             assert np.abs(others).max() < 1e-9
 
 

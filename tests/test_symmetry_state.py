@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
+import acm_rs
 import numpy as np
 import pytest
 from scipy.special import erf
-
-import acm_rs
 
 
 def test_rat_has_the_papers_50_free_entries(rat):
@@ -46,12 +45,15 @@ def test_symmetry_maps_mirror_x(rat):
 def test_rat_rest_pose_and_model_are_mirror_symmetric(rat):
     joints, markers = rat.rest_pose()
     for left, right in rat.symmetry["joints"]:
-        np.testing.assert_allclose(joints[rat.joint_index(right)],
-                                   joints[rat.joint_index(left)] * [-1, 1, 1], atol=1e-9)
+        np.testing.assert_allclose(
+            joints[rat.joint_index(right)], joints[rat.joint_index(left)] * [-1, 1, 1], atol=1e-9
+        )
     for left, right in rat.symmetry["markers"]:
         a, b = rat.marker_index(left), rat.marker_index(right)
         np.testing.assert_allclose(markers[b], markers[a] * [-1, 1, 1], atol=1e-9)
-        np.testing.assert_allclose(rat.marker_offsets[b], rat.marker_offsets[a] * [-1, 1, 1], atol=1e-9)
+        np.testing.assert_allclose(
+            rat.marker_offsets[b], rat.marker_offsets[a] * [-1, 1, 1], atol=1e-9
+        )
         np.testing.assert_array_equal(rat.marker_bounds[b, 0], -rat.marker_bounds[a, 0, ::-1])
     # The offsets of the model respect their own box constraints (sec. 6).
     lo, hi = rat.marker_bounds[..., 0], rat.marker_bounds[..., 1]
@@ -70,7 +72,9 @@ def test_erf_map_inside_bounds_monotone_and_inverse(rat):
     b = rat.bone_index("elbow_left")
     i = list(sm.free_indices).index(3 + 3 * b)
     b0, b1 = lim[b, 0]
-    np.testing.assert_allclose(r[:, b, 0], b0 + 0.5 * (b1 - b0) * (1 + erf(np.sqrt(np.pi) / 2 * z[:, i])))
+    np.testing.assert_allclose(
+        r[:, b, 0], b0 + 0.5 * (b1 - b0) * (1 + erf(np.sqrt(np.pi) / 2 * z[:, i]))
+    )
     # The centre of the state is the middle of every bounded range.
     _, r0 = sm.to_pose(np.zeros(sm.n_state))
     assert np.isclose(r0[b, 0], 0.5 * (b0 + b1))
@@ -108,7 +112,9 @@ def test_emission_is_fk_then_normalised_projection(rat, rig):
     t, r = sm.to_pose(z)
     _, markers = rat.forward(t, r)
     px = rig.project(markers)  # (C, 7, M, 2)
-    np.testing.assert_allclose(g, sm.normalization.normalize_pixels(px.transpose(1, 0, 2, 3)), atol=1e-9)
+    np.testing.assert_allclose(
+        g, sm.normalization.normalize_pixels(px.transpose(1, 0, 2, 3)), atol=1e-9
+    )
 
 
 def test_normalization_validation():
@@ -124,10 +130,14 @@ def test_bone_length_bounds(rat):
     assert np.all(free[:, 0] == 0) and np.all(np.isinf(free[:, 1]))
     b = rat.bone_length_bounds(body_weight=400.0)
     hum = b[rat.bone_index("elbow_left")]
-    np.testing.assert_allclose(hum, [0.0075 * 400 - 10 * 0.0005 * 400, 0.0075 * 400 + 10 * 0.0005 * 400])
+    np.testing.assert_allclose(
+        hum, [0.0075 * 400 - 10 * 0.0005 * 400, 0.0075 * 400 + 10 * 0.0005 * 400]
+    )
     assert np.isinf(b[rat.bone_index("spine_003"), 1])
     mouse = acm_rs.models.mouse().bone_length_bounds(sigma_factor=1.0)
-    np.testing.assert_allclose(mouse[acm_rs.models.mouse().bone_index("knee_left")], [1.668 - 0.029, 1.668 + 0.029])
+    np.testing.assert_allclose(
+        mouse[acm_rs.models.mouse().bone_index("knee_left")], [1.668 - 0.029, 1.668 + 0.029]
+    )
     with pytest.raises(ValueError, match="body_weight"):
         rat.bone_length_bounds(body_weight=-1)
 

@@ -13,7 +13,6 @@ def as_float_array(
     tail: Sequence[int | None] = (),
     *,
     finite: bool = True,
-    min_ndim: int | None = None,
 ) -> np.ndarray:
     """Return ``x`` as a C-contiguous float64 array whose trailing dims equal ``tail``.
 
@@ -24,10 +23,11 @@ def as_float_array(
         arr = np.ascontiguousarray(x, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{name} must be a numeric array: {exc}") from None
-    nd = len(tail) if min_ndim is None else min_ndim
+    nd = len(tail)
     want = ", ".join("n" if t is None else str(t) for t in tail)
     if arr.ndim < nd or any(
-        t is not None and s != t for s, t in zip(arr.shape[arr.ndim - len(tail) :], tail)
+        t is not None and s != t
+        for s, t in zip(arr.shape[arr.ndim - len(tail) :], tail, strict=True)
     ):
         raise ValueError(f"{name} must have shape (..., {want}), got {arr.shape}")
     if finite and not np.all(np.isfinite(arr)):

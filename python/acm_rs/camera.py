@@ -261,7 +261,7 @@ class CameraRig:
         """Return a new rig with the given (n_cams, 15) parameters (sizes and names kept)."""
         p = as_float_array(params, "params", (len(self), 15))
         return CameraRig(
-            Camera.from_params(row, c.size, c.name) for row, c in zip(p, self.cameras)
+            Camera.from_params(row, c.size, c.name) for row, c in zip(p, self.cameras, strict=True)
         )
 
     def project(self, points: np.ndarray) -> np.ndarray:

@@ -19,7 +19,9 @@ from .rotation import rodrigues, rodrigues_inverse
 from .skeleton import Skeleton
 
 
-def look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    center: np.ndarray, target: np.ndarray, up: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``(rvec, tvec)`` of a camera at ``center`` (world) looking at ``target``.
 
     OpenCV camera axes: z forward, x right, y down in the image; ``up`` is the world's up.

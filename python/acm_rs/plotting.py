@@ -43,7 +43,7 @@ def draw_skeleton_2d(
     joints_2d : array_like, shape (J, 2)
     markers_2d : array_like, shape (M, 2), optional
     """
-    for (s, e), c in zip(skeleton.bones, _side_colors(skeleton)):
+    for (s, e), c in zip(skeleton.bones, _side_colors(skeleton), strict=True):
         ax.plot(joints_2d[[s, e], 0], joints_2d[[s, e], 1], "-", color=c, lw=1.8)
     ax.plot(joints_2d[:, 0], joints_2d[:, 1], "o", color="k", ms=2.5)
     if markers_2d is not None:
@@ -63,7 +63,7 @@ def skeleton_views(
     """
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.5))
-    for ax, (a, b), label in zip(axes, [(0, 1), (0, 2)], ["top (x-y)", "side (x-z)"]):
+    for ax, (a, b), label in zip(axes, [(0, 1), (0, 2)], ["top (x-y)", "side (x-z)"], strict=True):
         m2 = None if markers is None else markers[:, [a, b]]
         draw_skeleton_2d(ax, skeleton, joints[:, [a, b]], m2)
         ax.set_aspect("equal")
@@ -106,7 +106,7 @@ def camera_views(
         if detections is not None:
             d = detections[i]
             ax.plot(d[:, 0], d[:, 1], "x", color="tab:orange", ms=4)
-            for a, b in zip(d, pm[i]):
+            for a, b in zip(d, pm[i], strict=True):
                 ax.plot([a[0], b[0]], [a[1], b[1]], "-", color="tab:orange", lw=0.6)
         w, h = cam.size if cam.size is not None else (2 * cam.params[8], 2 * cam.params[9])
         ax.set_xlim(0, w)

@@ -476,7 +476,9 @@ class Skeleton:
         tt = as_float_array(t, "t", (3,))
         rr = as_float_array(r, "r", (self.n_bones, 3))
         if tt.shape != (3,) or rr.shape != (self.n_bones, 3):
-            raise ValueError(f"expected t (3,) and r ({self.n_bones}, 3), got {tt.shape}, {rr.shape}")
+            raise ValueError(
+                f"expected t (3,) and r ({self.n_bones}, 3), got {tt.shape}, {rr.shape}"
+            )
         lengths = None
         if bone_lengths is not None:
             lengths = as_float_array(bone_lengths, "bone_lengths", (self.n_bones,))
@@ -557,7 +559,9 @@ class Skeleton:
             }
             b = self._marker_bounds[k]
             if np.any(np.isfinite(b)):
-                entry["bounds"] = {ax: [_clean(b[i, 0]), _clean(b[i, 1])] for i, ax in enumerate("xyz")}
+                entry["bounds"] = {
+                    ax: [_clean(b[i, 0]), _clean(b[i, 1])] for i, ax in enumerate("xyz")
+                }
             doc["markers"].append(entry)
         lim_entries = []
         for b, name in enumerate(self.bone_names):
@@ -565,7 +569,8 @@ class Skeleton:
             if np.all(np.isinf(lim[:, 0])) and np.all(np.isinf(lim[:, 1])):
                 continue
             lim_entries.append(
-                {"bone": name} | {ax: [_clean(lim[i, 0]), _clean(lim[i, 1])] for i, ax in enumerate("xyz")}
+                {"bone": name}
+                | {ax: [_clean(lim[i, 0]), _clean(lim[i, 1])] for i, ax in enumerate("xyz")}
             )
         doc["joint_limits"] = lim_entries
         doc["symmetry"] = {k: [list(p) for p in v] for k, v in self._symmetry.items()}
@@ -583,7 +588,9 @@ class Skeleton:
     def from_dict(cls, doc: Mapping, source: str = "<dict>") -> Skeleton:
         """Build a skeleton from a parsed skeleton document (see :meth:`to_dict`)."""
         if doc.get("format") != FORMAT_NAME:
-            raise ValueError(f"{source}: not an acm-rs skeleton file (format = {doc.get('format')!r})")
+            raise ValueError(
+                f"{source}: not an acm-rs skeleton file (format = {doc.get('format')!r})"
+            )
         if doc.get("version") != FORMAT_VERSION:
             raise ValueError(f"{source}: unsupported skeleton file version {doc.get('version')!r}")
         try:
@@ -740,7 +747,8 @@ def _limits_array(
     if bad.size:
         b, ax = bad[0]
         raise ValueError(
-            f"joint limit of bone {bone_names[b]!r} axis {'xyz'[ax]} has lower > upper: {out[b, ax]}"
+            f"joint limit of bone {bone_names[b]!r} axis {'xyz'[ax]} has lower > upper: "
+            f"{out[b, ax]}"
         )
     return out
 
@@ -757,7 +765,9 @@ def _marker_bounds_array(
             k = _lookup(marker_names, name, "marker")
             arr = np.asarray(b, dtype=np.float64)
             if arr.shape != (3, 2):
-                raise ValueError(f"marker bounds of {name!r} must have shape (3, 2), got {arr.shape}")
+                raise ValueError(
+                    f"marker bounds of {name!r} must have shape (3, 2), got {arr.shape}"
+                )
             out[k] = arr
     else:
         arr = np.asarray(bounds, dtype=np.float64)
@@ -776,7 +786,9 @@ def _check_symmetry(
 ) -> dict[str, list[tuple[str, str]]]:
     unknown_keys = set(symmetry) - {"joints", "markers"}
     if unknown_keys:
-        raise ValueError(f"symmetry keys must be 'joints' and/or 'markers', got {sorted(unknown_keys)}")
+        raise ValueError(
+            f"symmetry keys must be 'joints' and/or 'markers', got {sorted(unknown_keys)}"
+        )
     out: dict[str, list[tuple[str, str]]] = {"joints": [], "markers": []}
     for key, names, what in (("joints", joint_names, "joint"), ("markers", marker_names, "marker")):
         seen: set[str] = set()

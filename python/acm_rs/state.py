@@ -51,7 +51,9 @@ class Normalization:
                 raise ValueError(f"normalisation constant {name} must be finite and > 0, got {v}")
 
     @classmethod
-    def from_image_size(cls, width: float, height: float, translation: float = 50.0) -> Normalization:
+    def from_image_size(
+        cls, width: float, height: float, translation: float = 50.0
+    ) -> Normalization:
         """Pixel scales from a sensor size ``(width, height)`` in px (``c = size / 2``)."""
         return cls(translation=translation, pixel=(width / 2.0, height / 2.0))
 
