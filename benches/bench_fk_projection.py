@@ -7,7 +7,7 @@ cameras 60-100 cm from the origin looking at it) and random poses, then
     reference (``benches/numpy_reference.py``) give the same pixels;
 (b) times both for ``--frames`` poses (best of ``--repeats``, ``time.perf_counter``);
 (c) times 101 poses (one set of sigma points of the 50-dimensional tracker state) through the
-    fused ``NativeSkeleton.project_poses`` and through the NumPy reference.
+    fused ``Skeleton.project`` and through the NumPy reference.
 
 Usage::
 
@@ -34,7 +34,13 @@ import acm_rs
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from numpy_reference import fk_plan, forward_np, project_np  # noqa: E402
+from numpy_reference import (  # noqa: E402
+    fk_plan,
+    forward_np,
+    forward_np_simple,
+    project_np,
+    project_np_simple,
+)
 
 #: World "up" of the benchmark scene: the model's dorsal direction (rest-pose body frame).
 WORLD_UP = np.array([0.0, 1.0, 0.0])
@@ -200,6 +206,10 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
     assert diff_px < 1e-6, f"acm_rs and the NumPy reference differ by {diff_px} px"
     assert diff_3d < 1e-9, f"acm_rs and the NumPy reference differ by {diff_3d} cm"
 
+    _, markers_simple = forward_np_simple(skeleton, t, r)
+    diff_simple = max_abs_diff(project_np_simple(params, markers_simple), px_np)
+    assert diff_simple < 1e-6, f"the straightforward NumPy version differs by {diff_simple} px"
+
     # (b) timing, best of repeats
     timings = {
         "forward kinematics": (
@@ -214,7 +224,15 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
             best_time(run_np, args.repeats),
             best_time(run_acm, args.repeats),
         ),
+        "fused FK+projection": (
+            best_time(run_np, args.repeats),
+            best_time(lambda: skeleton.project(rig, t, r), args.repeats),
+        ),
     }
+    simple_s = best_time(
+        lambda: project_np_simple(params, forward_np_simple(skeleton, t, r)[1]),
+        max(1, args.repeats // 2),
+    )
     info = machine_info()
     print(
         f"\n(b) {args.frames} frames, best of {args.repeats} "
@@ -231,6 +249,15 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
             {"frames": args.frames, "stage": stage, "numpy_s": t_np, "acm_rs_s": t_acm,
              "speedup": t_np / t_acm}
         )  # fmt: skip
+    fused_s = timings["fused FK+projection"][1]
+    print(
+        f"{args.frames:>8}  {'straightforward NumPy FK+projection':<35} {simple_s:>9.4f} s "
+        f"(fused acm_rs is {simple_s / fused_s:.1f}x faster)"
+    )
+    rows.append(
+        {"frames": args.frames, "stage": "straightforward NumPy FK + projection",
+         "numpy_s": simple_s, "acm_rs_s": fused_s, "speedup": simple_s / fused_s}
+    )  # fmt: skip
     print(
         f"machine: {info['processor']} ({info['machine']}), {info['cpu_count']} CPUs, "
         f"Python {info['python']}, NumPy {info['numpy']}, acm_rs {info['acm_rs']}"
@@ -238,18 +265,16 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
 
     # (c) one set of sigma points through the fused native path
     ts, rs = random_poses(skeleton, N_SIGMA, rng)
-    poses = np.ascontiguousarray(np.concatenate([ts, rs.reshape(N_SIGMA, -1)], axis=1))
-    native = skeleton._native
 
     def sigma_np() -> np.ndarray:
         _, m = forward_np(skeleton, ts, rs, plan=plan)
         return project_np(params, m)
 
-    px_fused = native.project_poses(params, poses)  # (N, C, M, 2)
-    diff_sigma = max_abs_diff(px_fused, sigma_np().transpose(1, 0, 2, 3))
-    assert diff_sigma < 1e-6, f"project_poses and the NumPy reference differ by {diff_sigma} px"
+    px_fused = skeleton.project(rig, ts, rs)  # (C, N, M, 2)
+    diff_sigma = max_abs_diff(px_fused, sigma_np())
+    assert diff_sigma < 1e-6, f"Skeleton.project and the NumPy reference differ by {diff_sigma} px"
     number = 50
-    us_fused = 1e6 * best_time(lambda: native.project_poses(params, poses), args.repeats, number)
+    us_fused = 1e6 * best_time(lambda: skeleton.project(rig, ts, rs), args.repeats, number)
     us_np = 1e6 * best_time(sigma_np, args.repeats, number)
     print(
         f"\n(c) {N_SIGMA} poses (sigma points of the 50-dim state) -> "
@@ -257,7 +282,7 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         f"(max diff {diff_sigma:.1e} px)"
     )
     print(f"    NumPy reference (forward_np + project_np): {us_np:10.1f} us")
-    print(f"    acm_rs NativeSkeleton.project_poses:       {us_fused:10.1f} us")
+    print(f"    acm_rs Skeleton.project (fused, Python):   {us_fused:10.1f} us")
     print(f"    speed-up:                                  {us_np / us_fused:10.1f}x")
 
     results = {
@@ -270,7 +295,7 @@ def main(argv: list[str] | None = None) -> dict[str, object]:
         "sigma_points": {
             "poses": N_SIGMA,
             "numpy_us": us_np,
-            "acm_rs_project_poses_us": us_fused,
+            "acm_rs_project_us": us_fused,
             "speedup": us_np / us_fused,
             "max_abs_diff_px": diff_sigma,
         },

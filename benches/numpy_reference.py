@@ -377,3 +377,63 @@ def project_np(
         out[:, n0:n1, 0] = x
         out[:, n0:n1, 1] = y
     return out.reshape((n_cam,) + lead + (2,))
+
+
+# -- the straightforward version --------------------------------------------------------------
+def forward_np_simple(skeleton, t: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Alg. 1 as most NumPy code would write it: ``(T, 3, 3)`` stacks and ``np.matmul``.
+
+    Same semantics and shapes as :func:`forward_np` (root-first bone order); kept as a second
+    baseline to show what the tuned reference buys.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    n_t = t.shape[0]
+    bones = np.asarray(skeleton.bones)
+    parents = np.asarray(skeleton.parents)
+    frames = np.asarray(skeleton.rest_frames)
+    lengths = np.asarray(skeleton.bone_lengths)
+    q = rodrigues_np(r)  # (T, B, 3, 3)
+    n_j = len(parents)
+    acc = np.empty((n_t, n_j, 3, 3))
+    pos = np.empty((n_t, n_j, 3))
+    bone_rot = np.empty((n_t, len(bones), 3, 3))
+    root = int(np.flatnonzero(parents < 0)[0])
+    order = [root]
+    for a in order:  # breadth-first; the list grows while iterating
+        order.extend(int(j) for j in np.flatnonzero(parents == a))
+    pos[:, root] = t
+    for a in order:
+        p = acc[:, parents[a]] if parents[a] >= 0 else np.broadcast_to(np.eye(3), (n_t, 3, 3))
+        for b in np.flatnonzero(bones[:, 0] == a):
+            p = p @ q[:, b]
+        acc[:, a] = p
+    for b, s in enumerate(bones[:, 0]):
+        bone_rot[:, b] = acc[:, s] @ frames[b]
+    for a in order[1:]:
+        b = int(np.flatnonzero(bones[:, 1] == a)[0])
+        pos[:, a] = pos[:, bones[b, 0]] + bone_rot[:, b, :, 2] * lengths[b]
+    mj = np.asarray(skeleton.marker_joints)
+    mb = np.asarray(skeleton.marker_bones)
+    v = np.asarray(skeleton.marker_offsets)
+    markers = pos[:, mj] + np.einsum("tmij,mj->tmi", bone_rot[:, mb], v)
+    return pos, markers
+
+
+def project_np_simple(params: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """OpenCV projection written directly on ``(..., 3)`` arrays, one camera at a time."""
+    out = []
+    for p in np.asarray(params, dtype=np.float64):
+        rot = rodrigues_np(p[None, :3])[0]
+        y = points @ rot.T + p[3:6]
+        z = y[..., 2]
+        xn, yn = y[..., 0] / z, y[..., 1] / z
+        k1, k2, p1, p2, k3 = p[10:15]
+        r2 = xn * xn + yn * yn
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+        uv = np.stack([p[6] * xd + p[8], p[7] * yd + p[9]], axis=-1)
+        uv[z <= MIN_DEPTH] = np.nan
+        out.append(uv)
+    return np.stack(out)

@@ -259,6 +259,9 @@ fn is_missing(x: &[f64]) -> bool {
     x[0].is_nan() || x[1].is_nan() || x[2].is_nan()
 }
 
+/// Points per parallel task in the batch projections.
+const POINT_BLOCK: usize = 2048;
+
 /// Projects `n` world points (flat `(n, 3)`) into every camera, in parallel over points.
 /// A point with a NaN coordinate is missing: its pixels are NaN and `in_front` is false.
 ///
@@ -267,25 +270,86 @@ fn is_missing(x: &[f64]) -> bool {
 /// coordinates.
 pub fn project_points(cameras: &[Camera], points: &[f64]) -> Result<Projected> {
     let n = points_from_flat(points)?;
-    let mut pixels = vec![f64::NAN; cameras.len() * n * 2];
+    let mut pixels = vec![0.0; cameras.len() * n * 2];
     let mut in_front = vec![false; cameras.len() * n];
-    for (c, cam) in cameras.iter().enumerate() {
-        pixels[c * n * 2..(c + 1) * n * 2]
-            .par_chunks_mut(2)
-            .zip(in_front[c * n..(c + 1) * n].par_iter_mut())
-            .zip(points.par_chunks(3))
-            .for_each(|((px, ok), x)| {
-                if is_missing(x) {
-                    return;
-                }
-                if let Some(uv) = cam.project(&Vector3::new(x[0], x[1], x[2])) {
-                    px[0] = uv.x;
-                    px[1] = uv.y;
-                    *ok = true;
-                }
-            });
-    }
+    project_points_into(cameras, points, &mut pixels, Some(&mut in_front))?;
     Ok(Projected { pixels, in_front })
+}
+
+/// Like [`project_points`], writing `(c, n, 2)` pixels (and optionally the `(c, n)` mask)
+/// into caller-provided buffers; every entry is written.
+///
+/// # Errors
+/// As [`project_points`], plus shape errors for wrong buffer sizes.
+pub fn project_points_into(
+    cameras: &[Camera],
+    points: &[f64],
+    pixels: &mut [f64],
+    in_front: Option<&mut [bool]>,
+) -> Result<()> {
+    let n = points_from_flat(points)?;
+    let c = cameras.len();
+    ensure_len(pixels.len(), c * n * 2, "pixel output buffer")?;
+    if let Some(m) = in_front.as_deref() {
+        ensure_len(m.len(), c * n, "visibility output buffer")?;
+    }
+    if n == 0 || c == 0 {
+        return Ok(());
+    }
+    // Parallel over blocks of points; each point is read once and projected into every
+    // camera (the batch is memory-bound, so the points are streamed once, not once per camera).
+    let px_blocks = camera_blocks(pixels, c, 2 * n, 2 * POINT_BLOCK);
+    let mut mask_blocks: Vec<Option<Vec<&mut [bool]>>> = match in_front {
+        Some(m) => camera_blocks(m, c, n, POINT_BLOCK)
+            .into_iter()
+            .map(Some)
+            .collect(),
+        None => (0..px_blocks.len()).map(|_| None).collect(),
+    };
+    px_blocks
+        .into_par_iter()
+        .zip(mask_blocks.par_iter_mut())
+        .zip(points.par_chunks(3 * POINT_BLOCK))
+        .for_each(|((mut px, mask), pts)| {
+            for (i, x) in pts.chunks_exact(3).enumerate() {
+                let missing = is_missing(x);
+                let xv = Vector3::new(x[0], x[1], x[2]);
+                for (ci, cam) in cameras.iter().enumerate() {
+                    let uv = if missing { None } else { cam.project(&xv) };
+                    let (u, v, vis) = match uv {
+                        Some(uv) => (uv.x, uv.y, true),
+                        None => (f64::NAN, f64::NAN, false),
+                    };
+                    px[ci][2 * i] = u;
+                    px[ci][2 * i + 1] = v;
+                    if let Some(m) = mask.as_deref_mut() {
+                        m[ci][i] = vis;
+                    }
+                }
+            }
+        });
+    Ok(())
+}
+
+/// Splits a `(c, slab)` buffer into blocks: `result[k][ci]` is block `k` (of `block` values)
+/// of camera `ci`'s slab, so that parallel tasks over blocks write disjoint slices.
+pub(crate) fn camera_blocks<T>(
+    buf: &mut [T],
+    c: usize,
+    slab: usize,
+    block: usize,
+) -> Vec<Vec<&mut [T]>> {
+    let n_blocks = slab.div_ceil(block);
+    let mut iters: Vec<_> = buf.chunks_mut(slab).map(|s| s.chunks_mut(block)).collect();
+    debug_assert_eq!(iters.len(), c);
+    (0..n_blocks)
+        .map(|_| {
+            iters
+                .iter_mut()
+                .map(|it| it.next().expect("every slab has n_blocks blocks"))
+                .collect()
+        })
+        .collect()
 }
 
 /// Projections with Jacobians of `n` points in `c` cameras.

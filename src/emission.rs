@@ -2,7 +2,7 @@
 //! forward kinematics → projection into every camera → normalised pixels (eq. 11). Batches
 //! of states (e.g. one set of sigma points) are evaluated in parallel.
 
-use crate::camera::Camera;
+use crate::camera::{camera_blocks, Camera};
 use crate::error::{ensure_len, AcmError, Result};
 use crate::limits::StateMap;
 use crate::normalization::Normalization;
@@ -10,80 +10,113 @@ use crate::skeleton::Skeleton;
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
-fn pose_to_fk_input(pose: &[f64]) -> (Vector3<f64>, Vec<Vector3<f64>>) {
-    let t = Vector3::new(pose[0], pose[1], pose[2]);
-    let r = pose[3..]
-        .chunks(3)
-        .map(|c| Vector3::new(c[0], c[1], c[2]))
-        .collect();
-    (t, r)
-}
-
-fn project_markers_into(
-    markers: &[Vector3<f64>],
-    cameras: &[Camera],
+/// Projects flat `(M, 3)` markers into one camera, writing `(M, 2)` into `out` (normalised by
+/// eq. 11 when `norm` is given); NaN where a marker is behind the camera.
+fn project_one_camera(
+    markers: &[f64],
+    cam: &Camera,
     out: &mut [f64],
     norm: Option<&Normalization>,
 ) {
-    let n_m = markers.len();
-    for (c, cam) in cameras.iter().enumerate() {
-        for (k, m) in markers.iter().enumerate() {
-            let o = &mut out[(c * n_m + k) * 2..(c * n_m + k) * 2 + 2];
-            match cam.project(m) {
-                Some(uv) => {
-                    let (u, v) = match norm {
-                        Some(n) => n.normalize_pixel(uv.x, uv.y),
-                        None => (uv.x, uv.y),
-                    };
-                    o[0] = u;
-                    o[1] = v;
-                }
-                None => {
-                    o[0] = f64::NAN;
-                    o[1] = f64::NAN;
-                }
+    for (o, m) in out.chunks_exact_mut(2).zip(markers.chunks_exact(3)) {
+        match cam.project(&Vector3::new(m[0], m[1], m[2])) {
+            Some(uv) => {
+                let (u, v) = match norm {
+                    Some(n) => n.normalize_pixel(uv.x, uv.y),
+                    None => (uv.x, uv.y),
+                };
+                o[0] = u;
+                o[1] = v;
+            }
+            None => {
+                o[0] = f64::NAN;
+                o[1] = f64::NAN;
             }
         }
     }
 }
 
-/// Projects the markers of `N` full poses `[t, r]` into every camera (pixels).
+/// Projects the markers of `N` poses into every camera (fused FK + projection, pixels).
 ///
 /// # Arguments
-/// * `poses` - `(N, 3 + 3 n_bones)` flat.
+/// * `t` - `(N, 3)` flat translations; `r` - `(N, n_bones, 3)` flat Rodrigues vectors.
 ///
 /// # Returns
-/// `(N, n_cams, M, 2)` flat pixels; NaN where a marker is behind a camera.
+/// `(n_cams, N, M, 2)` flat pixels (the layout of [`crate::camera::project_points`]); NaN
+/// where a marker is behind a camera.
 ///
 /// # Errors
-/// Shape error for a wrong pose length; non-finite error naming the first bad pose.
-pub fn project_poses(skeleton: &Skeleton, cameras: &[Camera], poses: &[f64]) -> Result<Vec<f64>> {
-    let np = skeleton.n_pose();
-    if poses.len() % np != 0 {
-        return Err(AcmError::Shape(format!(
-            "poses: {} values is not a multiple of the pose length {np}",
-            poses.len()
-        )));
-    }
-    if let Some(i) = poses.iter().position(|v| !v.is_finite()) {
-        return Err(AcmError::NonFinite(format!(
-            "pose {} contains NaN or infinity",
-            i / np
-        )));
-    }
-    let block = cameras.len() * skeleton.n_markers() * 2;
-    let mut out = vec![0.0; (poses.len() / np) * block];
-    if block == 0 {
-        return Ok(out);
-    }
-    out.par_chunks_mut(block)
-        .zip(poses.par_chunks(np))
-        .for_each(|(o, pose)| {
-            let (t, r) = pose_to_fk_input(pose);
-            let fk = skeleton.forward_unchecked(&t, &r, skeleton.lengths(), skeleton.offsets());
-            project_markers_into(&fk.markers, cameras, o, None);
-        });
+/// Shape errors for inconsistent lengths; non-finite error naming the first bad pose.
+pub fn project_poses(
+    skeleton: &Skeleton,
+    cameras: &[Camera],
+    t: &[f64],
+    r: &[f64],
+) -> Result<Vec<f64>> {
+    let mut out = vec![0.0; (t.len() / 3) * cameras.len() * skeleton.n_markers() * 2];
+    project_poses_into(skeleton, cameras, t, r, &mut out)?;
     Ok(out)
+}
+
+/// Like [`project_poses`], writing into a caller-provided `(n_cams, N, M, 2)` buffer.
+///
+/// # Errors
+/// As [`project_poses`], plus a shape error for a wrong buffer size.
+pub fn project_poses_into(
+    skeleton: &Skeleton,
+    cameras: &[Camera],
+    t: &[f64],
+    r: &[f64],
+    out: &mut [f64],
+) -> Result<()> {
+    if t.len() % 3 != 0 {
+        return Err(AcmError::Shape(format!(
+            "translations: {} values is not a multiple of 3",
+            t.len()
+        )));
+    }
+    let n = t.len() / 3;
+    let (n_b, n_m, c) = (skeleton.n_bones(), skeleton.n_markers(), cameras.len());
+    ensure_len(r.len(), n * 3 * n_b, "rotations (N, n_bones, 3)")?;
+    if let Some(i) = t.iter().chain(r).position(|v| !v.is_finite()) {
+        let pose = if i < t.len() {
+            i / 3
+        } else {
+            (i - t.len()) / (3 * n_b)
+        };
+        return Err(AcmError::NonFinite(format!(
+            "pose {pose} contains NaN or infinity"
+        )));
+    }
+    ensure_len(out.len(), c * n * n_m * 2, "pixel output buffer")?;
+    if n == 0 || c == 0 || n_m == 0 {
+        return Ok(());
+    }
+    const BLOCK: usize = 32;
+    let blocks = camera_blocks(out, c, n * n_m * 2, BLOCK * n_m * 2);
+    blocks.into_par_iter().enumerate().for_each_init(
+        || (skeleton.workspace(), vec![0.0; 3 * n_m]),
+        |(ws, markers), (blk, mut dst)| {
+            let nf = dst[0].len() / (n_m * 2);
+            for f in 0..nf {
+                let i = blk * BLOCK + f;
+                skeleton.forward_flat_into(
+                    &t[3 * i..3 * i + 3],
+                    &r[3 * n_b * i..3 * n_b * (i + 1)],
+                    skeleton.lengths(),
+                    skeleton.offsets(),
+                    ws,
+                    None,
+                    markers,
+                );
+                for (ci, cam) in cameras.iter().enumerate() {
+                    let o = &mut dst[ci][f * n_m * 2..(f + 1) * n_m * 2];
+                    project_one_camera(markers, cam, o, None);
+                }
+            }
+        },
+    );
+    Ok(())
 }
 
 /// Alg. 4 for a batch of states: `g(f_{z*→z}(z))` for each row of `states`.
@@ -127,13 +160,30 @@ pub fn emission_batch(
     }
     out.par_chunks_mut(block)
         .zip(states.par_chunks(ns))
+        .with_min_len(16)
         .for_each_init(
-            || vec![0.0; skeleton.n_pose()],
-            |pose, (o, z)| {
+            || {
+                (
+                    skeleton.workspace(),
+                    vec![0.0; skeleton.n_pose()],
+                    vec![0.0; 3 * skeleton.n_markers()],
+                )
+            },
+            |(ws, pose, markers), (o, z)| {
                 map.to_pose_into(z, pose, None);
-                let (t, r) = pose_to_fk_input(pose);
-                let fk = skeleton.forward_unchecked(&t, &r, skeleton.lengths(), skeleton.offsets());
-                project_markers_into(&fk.markers, cameras, o, Some(norm));
+                skeleton.forward_flat_into(
+                    &pose[..3],
+                    &pose[3..],
+                    skeleton.lengths(),
+                    skeleton.offsets(),
+                    ws,
+                    None,
+                    markers,
+                );
+                let per_cam = 2 * skeleton.n_markers();
+                for (cam, oc) in cameras.iter().zip(o.chunks_exact_mut(per_cam)) {
+                    project_one_camera(markers, cam, oc, Some(norm));
+                }
             },
         );
     Ok(out)
@@ -190,15 +240,29 @@ mod tests {
             .map(|i| ((i * 37 % 17) as f64 / 17.0 - 0.5) * 0.3)
             .collect();
         let g = emission_batch(&sk, &cams, &map, &norm, &states).unwrap();
+        let mut t = Vec::new();
+        let mut r = Vec::new();
         for s in 0..3 {
             let pose = map.to_pose(&states[s * ns..(s + 1) * ns]).unwrap();
-            let px = project_poses(&sk, &cams, &pose).unwrap();
-            let block = cams.len() * sk.n_markers() * 2;
-            for i in 0..block {
-                let expect = px[i] / norm.pixel[i % 2] - 1.0;
-                assert!((g[s * block + i] - expect).abs() < 1e-12);
+            t.extend_from_slice(&pose[..3]);
+            r.extend_from_slice(&pose[3..]);
+        }
+        // project_poses: (C, N, M, 2); emission: (N, C, M, 2), normalised.
+        let px = project_poses(&sk, &cams, &t, &r).unwrap();
+        let n_m = sk.n_markers();
+        for s in 0..3 {
+            for c in 0..cams.len() {
+                for k in 0..2 * n_m {
+                    let expect = px[(c * 3 + s) * 2 * n_m + k] / norm.pixel[k % 2] - 1.0;
+                    let got = g[(s * cams.len() + c) * 2 * n_m + k];
+                    assert!((got - expect).abs() < 1e-12);
+                }
             }
         }
+        // ... and the fused path equals FK followed by the batch projection.
+        let (_, markers) = sk.forward_batch(&t, &r, None, None).unwrap();
+        let sep = crate::camera::project_points(&cams, &markers).unwrap();
+        assert_eq!(sep.pixels, px);
         assert!(matches!(
             emission_batch(&sk, &cams, &map, &norm, &states[1..]),
             Err(AcmError::Shape(_))

@@ -76,9 +76,27 @@ fn coefficients(theta2: f64) -> Coefficients {
 /// assert!((r * Vector3::x() - Vector3::y()).norm() < 1e-15);
 /// ```
 pub fn rodrigues(r: &Vector3<f64>) -> Matrix3<f64> {
-    let k = skew(r);
-    let co = coefficients(r.norm_squared());
-    Matrix3::identity() + k * co.a + k * k * co.b
+    let t2 = r.norm_squared();
+    if t2 == 0.0 {
+        return Matrix3::identity();
+    }
+    let co = coefficients(t2);
+    // I + a K + b K² with K² = r rᵀ − θ² I, written out: (1 − b θ²) I + a K + b r rᵀ.
+    let c = 1.0 - co.b * t2;
+    let (x, y, z) = (r.x, r.y, r.z);
+    let (ax, ay, az) = (co.a * x, co.a * y, co.a * z);
+    let (bxy, bxz, byz) = (co.b * x * y, co.b * x * z, co.b * y * z);
+    Matrix3::new(
+        c + co.b * x * x,
+        bxy - az,
+        bxz + ay,
+        bxy + az,
+        c + co.b * y * y,
+        byz - ax,
+        bxz - ay,
+        byz + ax,
+        c + co.b * z * z,
+    )
 }
 
 /// Left Jacobian of SO(3) at `r`: `R(r + δ) ≈ R(J_l(r) δ) R(r)` to first order.

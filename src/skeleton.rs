@@ -35,6 +35,8 @@ pub struct Skeleton {
     order: Vec<usize>,
     out_bones: Vec<Vec<usize>>,
     marker_bone: Vec<usize>,
+    /// Whether any marker is expressed in the frame of each bone.
+    bone_has_marker: Vec<bool>,
     /// `anc[a * J + b]`: joint `a` is an ancestor of joint `b` or `a == b`.
     anc: Vec<bool>,
 }
@@ -51,6 +53,14 @@ pub struct FkResult {
     /// Accumulated rotation `P_a` at each joint (product of the rotations of every bone that
     /// starts at `a` or at one of its ancestors).
     joint_rotations: Vec<Matrix3<f64>>,
+}
+
+/// Per-thread scratch space of forward kinematics (see [`Skeleton::workspace`]).
+#[derive(Debug, Clone)]
+pub struct FkWorkspace {
+    joint_rot: Vec<Matrix3<f64>>,
+    bone_rot: Vec<Matrix3<f64>>,
+    joints: Vec<Vector3<f64>>,
 }
 
 /// Exact derivatives of joint and marker positions (rows `[joints (3J), markers (3M)]`).
@@ -174,6 +184,10 @@ impl Skeleton {
                 a = parents[x];
             }
         }
+        let mut bone_has_marker = vec![false; n_b];
+        for &b in &marker_bone {
+            bone_has_marker[b] = true;
+        }
         Ok(Self {
             parents,
             root,
@@ -186,6 +200,7 @@ impl Skeleton {
             order,
             out_bones,
             marker_bone,
+            bone_has_marker,
             anc,
         })
     }
@@ -401,8 +416,89 @@ impl Skeleton {
         ))
     }
 
-    /// Forward kinematics without input validation (hot path of batch code that validated
-    /// once).
+    /// Scratch space for allocation-free forward kinematics ([`Skeleton::forward_flat_into`]).
+    pub fn workspace(&self) -> FkWorkspace {
+        FkWorkspace {
+            joint_rot: vec![Matrix3::identity(); self.n_joints()],
+            bone_rot: vec![Matrix3::identity(); self.n_bones()],
+            joints: vec![Vector3::zeros(); self.n_joints()],
+        }
+    }
+
+    /// Alg. 1 core: joint rotations, bone orientations and joint positions into `ws`.
+    /// `r` is flat `(n_bones, 3)`.
+    /// With `full == false` only the orientations of bones that carry markers are formed.
+    fn fk_core(
+        &self,
+        t: &Vector3<f64>,
+        r: &[f64],
+        lengths: &[f64],
+        ws: &mut FkWorkspace,
+        full: bool,
+    ) {
+        ws.joints[self.root] = *t;
+        for &a in &self.order {
+            // Alg. 1 lines 3-6 and eq. 8: P_a = P_parent · Q_{b1} Q_{b2} … over the bones that
+            // start at a, in bone order (root-to-leaf application of the transposes).
+            let mut p = match self.parents[a] {
+                Some(par) => ws.joint_rot[par],
+                None => Matrix3::identity(),
+            };
+            for &b in &self.out_bones[a] {
+                let rv = Vector3::new(r[3 * b], r[3 * b + 1], r[3 * b + 2]);
+                if rv != Vector3::zeros() {
+                    p *= rodrigues(&rv);
+                }
+            }
+            ws.joint_rot[a] = p;
+            if let Some(b) = self.bone_of_end[a] {
+                // Alg. 1 lines 8 and 11: R_b = P_start R̄_b, p_end = p_start + R_b e_z l_b.
+                let start = self.bones[b].0;
+                let ps = &ws.joint_rot[start];
+                ws.joints[a] = ws.joints[start] + ps * self.rest_frames[b].column(2) * lengths[b];
+                if full || self.bone_has_marker[b] {
+                    ws.bone_rot[b] = ps * self.rest_frames[b];
+                }
+            }
+        }
+    }
+
+    /// Allocation-free forward kinematics of one pose without validation (hot path of batch
+    /// code that validated its inputs once).
+    ///
+    /// # Arguments
+    /// * `t` - root translation (3 values); `r` - flat `(n_bones, 3)` Rodrigues vectors.
+    /// * `joints_out` - optional flat `(J, 3)` output; `markers_out` - flat `(M, 3)` output.
+    #[allow(clippy::too_many_arguments)] // hot path: flat slices, no per-call packing
+    pub fn forward_flat_into(
+        &self,
+        t: &[f64],
+        r: &[f64],
+        lengths: &[f64],
+        offsets: &[Vector3<f64>],
+        ws: &mut FkWorkspace,
+        joints_out: Option<&mut [f64]>,
+        markers_out: &mut [f64],
+    ) {
+        self.fk_core(&Vector3::new(t[0], t[1], t[2]), r, lengths, ws, false);
+        if let Some(jo) = joints_out {
+            for (dst, p) in jo.chunks_exact_mut(3).zip(&ws.joints) {
+                dst.copy_from_slice(p.as_slice());
+            }
+        }
+        // Alg. 1 line 15: m_k = p_j + R_b v_k.
+        for (((dst, &j), &b), v) in markers_out
+            .chunks_exact_mut(3)
+            .zip(&self.marker_joints)
+            .zip(&self.marker_bone)
+            .zip(offsets)
+        {
+            let m = ws.joints[j] + ws.bone_rot[b] * v;
+            dst.copy_from_slice(m.as_slice());
+        }
+    }
+
+    /// Forward kinematics without input validation, returning every intermediate.
     pub fn forward_unchecked(
         &self,
         t: &Vector3<f64>,
@@ -410,43 +506,21 @@ impl Skeleton {
         lengths: &[f64],
         offsets: &[Vector3<f64>],
     ) -> FkResult {
-        let n_j = self.n_joints();
-        let mut joint_rot = vec![Matrix3::identity(); n_j];
-        let mut joints = vec![Vector3::zeros(); n_j];
-        let mut bone_rot = vec![Matrix3::identity(); self.n_bones()];
-        joints[self.root] = *t;
-        for &a in &self.order {
-            // Alg. 1 lines 3-6 and eq. 8: P_a = P_parent · Q_{b1} Q_{b2} … over bones starting
-            // at a, in bone order.
-            let mut p = match self.parents[a] {
-                Some(par) => joint_rot[par],
-                None => Matrix3::identity(),
-            };
-            for &b in &self.out_bones[a] {
-                p *= rodrigues(&r[b]);
-            }
-            joint_rot[a] = p;
-            if let Some(b) = self.bone_of_end[a] {
-                // Alg. 1 lines 8 and 11: R_b = P_start R̄_b, p_end = p_start + R_b e_z l_b.
-                let start = self.bones[b].0;
-                let rb: Matrix3<f64> = joint_rot[start] * self.rest_frames[b];
-                joints[a] = joints[start] + rb.column(2) * lengths[b];
-                bone_rot[b] = rb;
-            }
-        }
-        // Alg. 1 line 15: m_k = p_j + R_b v_k.
+        let flat: Vec<f64> = r.iter().flat_map(|v| [v.x, v.y, v.z]).collect();
+        let mut ws = self.workspace();
+        self.fk_core(t, &flat, lengths, &mut ws, true);
         let markers = self
             .marker_joints
             .iter()
             .zip(&self.marker_bone)
             .zip(offsets)
-            .map(|((&j, &b), v)| joints[j] + bone_rot[b] * v)
+            .map(|((&j, &b), v)| ws.joints[j] + ws.bone_rot[b] * v)
             .collect();
         FkResult {
-            joints,
+            joints: ws.joints,
             markers,
-            bone_rotations: bone_rot,
-            joint_rotations: joint_rot,
+            bone_rotations: ws.bone_rot,
+            joint_rotations: ws.joint_rot,
         }
     }
 
@@ -568,6 +642,27 @@ impl Skeleton {
         lengths: Option<&[f64]>,
         offsets: Option<&[f64]>,
     ) -> Result<(Vec<f64>, Vec<f64>)> {
+        let n_t = t.len() / 3;
+        let mut joints = vec![0.0; n_t * self.n_joints() * 3];
+        let mut markers = vec![0.0; n_t * self.n_markers() * 3];
+        self.forward_batch_into(t, r, lengths, offsets, &mut joints, &mut markers)?;
+        Ok((joints, markers))
+    }
+
+    /// Like [`Skeleton::forward_batch`], writing into caller-provided buffers of
+    /// `T·J·3` and `T·M·3` values (e.g. numpy arrays).
+    ///
+    /// # Errors
+    /// As [`Skeleton::forward_batch`], plus shape errors for wrong buffer sizes.
+    pub fn forward_batch_into(
+        &self,
+        t: &[f64],
+        r: &[f64],
+        lengths: Option<&[f64]>,
+        offsets: Option<&[f64]>,
+        joints_out: &mut [f64],
+        markers_out: &mut [f64],
+    ) -> Result<()> {
         if t.len() % 3 != 0 {
             return Err(AcmError::Shape(format!(
                 "translations: {} values is not a multiple of 3",
@@ -575,16 +670,15 @@ impl Skeleton {
             )));
         }
         let n_t = t.len() / 3;
-        ensure_len(
-            r.len(),
-            n_t * 3 * self.n_bones(),
-            "rotations (T, n_bones, 3)",
-        )?;
+        let (n_j, n_m, n_b) = (self.n_joints(), self.n_markers(), self.n_bones());
+        ensure_len(r.len(), n_t * 3 * n_b, "rotations (T, n_bones, 3)")?;
+        ensure_len(joints_out.len(), n_t * n_j * 3, "joint output buffer")?;
+        ensure_len(markers_out.len(), n_t * n_m * 3, "marker output buffer")?;
         if let Some(i) = t.iter().chain(r.iter()).position(|v| !v.is_finite()) {
             let frame = if i < t.len() {
                 i / 3
             } else {
-                (i - t.len()) / (3 * self.n_bones())
+                (i - t.len()) / (3 * n_b)
             };
             return Err(AcmError::NonFinite(format!(
                 "pose of frame {frame} contains NaN or infinity"
@@ -592,7 +686,7 @@ impl Skeleton {
         }
         let offsets_v: Option<Vec<Vector3<f64>>> = match offsets {
             Some(o) => {
-                ensure_len(o.len(), 3 * self.n_markers(), "marker offsets (M, 3)")?;
+                ensure_len(o.len(), 3 * n_m, "marker offsets (M, 3)")?;
                 Some(
                     o.chunks(3)
                         .map(|c| Vector3::new(c[0], c[1], c[2]))
@@ -604,28 +698,47 @@ impl Skeleton {
         self.check_overrides(lengths, offsets_v.as_deref())?;
         let l = lengths.unwrap_or(&self.lengths);
         let v = offsets_v.as_deref().unwrap_or(&self.offsets);
-        let (n_j, n_m, n_b) = (self.n_joints(), self.n_markers(), self.n_bones());
-        let mut joints = vec![0.0; n_t * n_j * 3];
-        let mut markers = vec![0.0; n_t * n_m * 3];
-        joints
-            .par_chunks_mut(n_j * 3)
-            .zip(markers.par_chunks_mut((n_m * 3).max(1)))
-            .enumerate()
-            .for_each(|(f, (jo, mo))| {
-                let tv = Vector3::new(t[3 * f], t[3 * f + 1], t[3 * f + 2]);
-                let rv: Vec<Vector3<f64>> = r[f * 3 * n_b..(f + 1) * 3 * n_b]
-                    .chunks(3)
-                    .map(|c| Vector3::new(c[0], c[1], c[2]))
-                    .collect();
-                let fk = self.forward_unchecked(&tv, &rv, l, v);
-                for (dst, p) in jo.chunks_mut(3).zip(&fk.joints) {
-                    dst.copy_from_slice(p.as_slice());
-                }
-                for (dst, m) in mo.chunks_mut(3).zip(&fk.markers) {
-                    dst.copy_from_slice(m.as_slice());
-                }
-            });
-        Ok((joints, markers))
+        // Blocks of frames keep rayon's per-task overhead negligible.
+        const BLOCK: usize = 64;
+        let run = |ws: &mut FkWorkspace, blk: usize, jo: &mut [f64], mo: &mut [f64]| {
+            let nf = jo.len() / (n_j * 3);
+            for f in 0..nf {
+                let fr = blk * BLOCK + f;
+                let mo_f: &mut [f64] = if n_m == 0 {
+                    &mut []
+                } else {
+                    &mut mo[f * n_m * 3..(f + 1) * n_m * 3]
+                };
+                self.forward_flat_into(
+                    &t[3 * fr..3 * fr + 3],
+                    &r[fr * 3 * n_b..(fr + 1) * 3 * n_b],
+                    l,
+                    v,
+                    ws,
+                    Some(&mut jo[f * n_j * 3..(f + 1) * n_j * 3]),
+                    mo_f,
+                );
+            }
+        };
+        if n_m == 0 {
+            joints_out
+                .par_chunks_mut(BLOCK * n_j * 3)
+                .enumerate()
+                .for_each_init(
+                    || self.workspace(),
+                    |ws, (blk, jo)| run(ws, blk, jo, &mut []),
+                );
+        } else {
+            joints_out
+                .par_chunks_mut(BLOCK * n_j * 3)
+                .zip(markers_out.par_chunks_mut(BLOCK * n_m * 3))
+                .enumerate()
+                .for_each_init(
+                    || self.workspace(),
+                    |ws, (blk, (jo, mo))| run(ws, blk, jo, mo),
+                );
+        }
+        Ok(())
     }
 }
 

@@ -216,10 +216,8 @@ def test_projection_matches_acm_rs(model, rig):
         assert got.shape == (len(cams), N_POSES, model.n_markers, 2)
         assert np.isfinite(got).all()
         assert_same_pixels(got, project_np(params, markers))
-        # Fused native path: (N, C, M, 2) from flat poses [t, r.ravel()].
-        poses = np.concatenate([t, r.reshape(N_POSES, -1)], axis=1)
-        fused = model._native.project_poses(params, np.ascontiguousarray(poses))
-        assert_same_pixels(fused, project_np(params, markers).transpose(1, 0, 2, 3))
+        # Fused native path (FK + projection in one call): (C, N, M, 2).
+        assert_same_pixels(model.project(cams, t, r), project_np(params, markers))
 
 
 def test_end_to_end_bench_poses(model):

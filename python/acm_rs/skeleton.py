@@ -22,7 +22,7 @@ import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from . import _native, _toml
 from ._arrays import as_float_array, as_index_array
 from ._io import atomic_write
 from .state import Normalization, StateMap
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .camera import CameraRig
 
 FORMAT_NAME = "acm-rs-skeleton"
 FORMAT_VERSION = 1
@@ -452,6 +455,35 @@ class Skeleton:
         if single:
             return joints[0], markers[0]
         return joints, markers
+
+    def project(self, rig: CameraRig, t: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """Fused forward kinematics and projection of the markers into every camera.
+
+        Equals ``rig.project(self.forward(t, r)[1])`` without the intermediate 3D markers.
+
+        Parameters
+        ----------
+        rig : CameraRig
+        t : array_like, shape (T, 3) or (3,)
+        r : array_like, shape (T, n_bones, 3) or (n_bones, 3)
+
+        Returns
+        -------
+        numpy.ndarray, shape (n_cams, T, M, 2) or (n_cams, M, 2)
+            Pixels; NaN where a marker is behind a camera.
+        """
+        tt = as_float_array(t, "t", (3,))
+        rr = as_float_array(r, "r", (self.n_bones, 3))
+        single = tt.ndim == 1
+        if tt.shape[:-1] != rr.shape[:-2] or tt.ndim > 2:
+            raise ValueError(
+                f"t must be (T, 3) with r (T, {self.n_bones}, 3), or (3,) with "
+                f"({self.n_bones}, 3); got t {tt.shape} and r {rr.shape}"
+            )
+        px = self._native.project_poses(
+            rig.get_params(), tt.reshape(-1, 3), rr.reshape(-1, self.n_bones, 3)
+        )
+        return px[:, 0] if single else px
 
     def forward_jacobian(
         self,

@@ -52,6 +52,19 @@ fn out<'py>(py: Python<'py>, data: Vec<f64>, shape: &[usize]) -> PyResult<Out<'p
     PyArray1::from_vec(py, data).reshape(shape.to_vec())
 }
 
+/// A new C-contiguous numpy array whose every element the caller must write (Rust fills it
+/// with the GIL released; numpy's allocator uses huge pages for large outputs).
+fn alloc<'py>(py: Python<'py>, shape: &[usize]) -> Out<'py> {
+    // SAFETY: the array is C-contiguous and every caller overwrites all of its elements
+    // before it is returned to Python; on error it is dropped unread.
+    unsafe { PyArrayDyn::<f64>::new(py, shape.to_vec(), false) }
+}
+
+fn alloc_bool<'py>(py: Python<'py>, shape: &[usize]) -> Bound<'py, PyArrayDyn<bool>> {
+    // SAFETY: as `alloc`; every element is written.
+    unsafe { PyArrayDyn::<bool>::new(py, shape.to_vec(), false) }
+}
+
 fn vec3s(flat: &[f64]) -> Vec<Vector3<f64>> {
     flat.chunks(3)
         .map(|c| Vector3::new(c[0], c[1], c[2]))
@@ -118,11 +131,16 @@ fn project<'py>(
     let cams = cameras_from(&params)?;
     let pts = view(&points, "points", &[None, Some(3)])?;
     let n = pts.len() / 3;
-    let proj = py
-        .detach(|| camera::project_points(&cams, pts))
-        .map_err(to_py)?;
-    let mask = PyArray1::from_vec(py, proj.in_front).reshape(vec![cams.len(), n])?;
-    Ok((out(py, proj.pixels, &[cams.len(), n, 2])?, mask))
+    let pixels = alloc(py, &[cams.len(), n, 2]);
+    let mask = alloc_bool(py, &[cams.len(), n]);
+    {
+        let mut px = pixels.readwrite();
+        let mut mk = mask.readwrite();
+        let (px, mk) = (px.as_slice_mut()?, mk.as_slice_mut()?);
+        py.detach(|| camera::project_points_into(&cams, pts, px, Some(mk)))
+            .map_err(to_py)?;
+    }
+    Ok((pixels, mask))
 }
 
 /// Projection with exact Jacobians → `(pixels (c, n, 2), d_point (c, n, 2, 3),
@@ -292,13 +310,16 @@ impl PySkeleton {
             Some(o) => Some(view(o, "offsets", &[Some(sk.n_markers()), Some(3)])?),
             None => None,
         };
-        let (j, m) = py
-            .detach(|| sk.forward_batch(ts, rs, ls, os))
-            .map_err(to_py)?;
-        Ok((
-            out(py, j, &[n_t, sk.n_joints(), 3])?,
-            out(py, m, &[n_t, sk.n_markers(), 3])?,
-        ))
+        let joints = alloc(py, &[n_t, sk.n_joints(), 3]);
+        let markers = alloc(py, &[n_t, sk.n_markers(), 3]);
+        {
+            let mut jw = joints.readwrite();
+            let mut mw = markers.readwrite();
+            let (jo, mo) = (jw.as_slice_mut()?, mw.as_slice_mut()?);
+            py.detach(|| sk.forward_batch_into(ts, rs, ls, os, jo, mo))
+                .map_err(to_py)?;
+        }
+        Ok((joints, markers))
     }
 
     /// Single-pose FK with exact Jacobians: `t (3,)`, `r (n_bones, 3)` →
@@ -344,21 +365,28 @@ impl PySkeleton {
         ))
     }
 
-    /// Projects the markers of `poses (N, 3 + 3B)` into `(C, 15)` cameras → `(N, C, M, 2)`.
+    /// Fused FK + projection: `t (N, 3)`, `r (N, B, 3)` into `(C, 15)` cameras →
+    /// `(C, N, M, 2)` pixels.
     fn project_poses<'py>(
         &self,
         py: Python<'py>,
         params: Arr<'py>,
-        poses: Arr<'py>,
+        t: Arr<'py>,
+        r: Arr<'py>,
     ) -> PyResult<Out<'py>> {
         let sk = &self.inner;
         let cams = cameras_from(&params)?;
-        let p = view(&poses, "poses", &[None, Some(sk.n_pose())])?;
-        let n = p.len() / sk.n_pose();
-        let px = py
-            .detach(|| emission::project_poses(sk, &cams, p))
-            .map_err(to_py)?;
-        out(py, px, &[n, cams.len(), sk.n_markers(), 2])
+        let ts = view(&t, "t", &[None, Some(3)])?;
+        let n = ts.len() / 3;
+        let rs = view(&r, "r", &[Some(n), Some(sk.n_bones()), Some(3)])?;
+        let pixels = alloc(py, &[cams.len(), n, sk.n_markers(), 2]);
+        {
+            let mut pw = pixels.readwrite();
+            let po = pw.as_slice_mut()?;
+            py.detach(|| emission::project_poses_into(sk, &cams, ts, rs, po))
+                .map_err(to_py)?;
+        }
+        Ok(pixels)
     }
 }
 
