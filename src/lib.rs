@@ -12,6 +12,7 @@
 //! | [`normalization`] | sec. 3.3, eq. 11 |
 //! | [`limits`] | sec. 4.4.3, Alg. 10 (joint-angle limits, state map) |
 //! | [`emission`] | sec. 4.1, Alg. 4 (emission function `g`) |
+//! | [`gapfill`] | Burke & Lasenby 2016 (marker gap filling) |
 //!
 //! The core is pure Rust (no Python); the `python` cargo feature adds the pyo3 bindings in
 //! `src/python/`.
@@ -19,6 +20,7 @@
 pub mod camera;
 pub mod emission;
 pub mod error;
+pub mod gapfill;
 pub mod limits;
 pub mod normalization;
 pub mod rotation;

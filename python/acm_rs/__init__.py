@@ -6,7 +6,7 @@ kinematics (sec. 3.1, Alg. 1), symmetry maps (Alg. 2-3), normalisation (sec. 3.3
 joint-limit state map (Alg. 10), all with exact derivatives computed in Rust.
 """
 
-from . import models
+from . import gapfill, models
 from ._native import AcmNumericalError
 from .camera import PARAM_NAMES, Camera, CameraRig
 from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
@@ -27,6 +27,7 @@ __all__ = [
     "StateMap",
     "SymmetryMap",
     "__version__",
+    "gapfill",
     "models",
     "rodrigues",
     "rodrigues_inverse",

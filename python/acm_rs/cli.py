@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--save", help="write the model as a skeleton TOML file")
     m.add_argument("--plot", help="write a PNG of the rest pose")
     m.set_defaults(func=_cmd_model)
+    from .gapfill.cli import add_subcommands as add_gapfill
+
+    add_gapfill(sub)
     return p
 
 

@@ -4,6 +4,7 @@
 //! calling in.
 
 mod error;
+mod gapfill;
 
 use crate::camera::{self, Camera};
 use crate::emission;
@@ -595,5 +596,6 @@ fn native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyStateMap>()?;
     m.add("AcmNumericalError", m.py().get_type::<AcmNumericalError>())?;
     m.add("N_CAMERA_PARAMS", camera::N_PARAMS)?;
+    gapfill::register(m)?;
     Ok(())
 }

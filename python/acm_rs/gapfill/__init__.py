@@ -1,0 +1,1 @@
+"""Gap filling of motion-capture marker trajectories (Burke & Lasenby 2016)."""
