@@ -12,6 +12,7 @@
 //! | [`normalization`] | sec. 3.3, eq. 11 |
 //! | [`limits`] | sec. 4.4.3, Alg. 10 (joint-angle limits, state map) |
 //! | [`emission`] | sec. 4.1, Alg. 4 (emission function `g`) |
+//! | [`learning`] | sec. 3.2-3.4, eqs. 9-12 (skeleton learning objective) |
 //! | [`gapfill`] | Burke & Lasenby 2016 (marker gap filling) |
 //!
 //! The core is pure Rust (no Python); the `python` cargo feature adds the pyo3 bindings in
@@ -21,6 +22,7 @@ pub mod camera;
 pub mod emission;
 pub mod error;
 pub mod gapfill;
+pub mod learning;
 pub mod limits;
 pub mod normalization;
 pub mod rotation;

@@ -563,18 +563,9 @@ impl Skeleton {
             .collect();
         let point_pos: Vec<&Vector3<f64>> = fk.joints.iter().chain(fk.markers.iter()).collect();
         // Rotations.
+        let axes = self.rotation_axes(&fk, r);
         for (i, &(si, _)) in self.bones.iter().enumerate() {
-            let mut before = match self.parents[si] {
-                Some(par) => fk.joint_rotations[par],
-                None => Matrix3::identity(),
-            };
-            for &s in &self.out_bones[si] {
-                if s == i {
-                    break;
-                }
-                before *= rodrigues(&r[s]);
-            }
-            let w = before * left_jacobian(&r[i]);
+            let w = axes[i];
             let pivot = fk.joints[si];
             for (p, pb) in point_bone.iter().enumerate() {
                 let Some(pb) = pb else { continue };
@@ -620,6 +611,78 @@ impl Skeleton {
             d_lengths,
             d_offsets,
         })
+    }
+
+    /// World-frame rotation axes of every bone's Rodrigues components: column `k` of entry
+    /// `i` is `w_ik = A_i J_l(r_i) e_k`, so a point `x` moved by bone `i` has
+    /// `∂x/∂r_ik = w_ik × (x − p_start(i))`. `fk` must come from the same `r`.
+    pub fn rotation_axes(&self, fk: &FkResult, r: &[Vector3<f64>]) -> Vec<Matrix3<f64>> {
+        self.bones
+            .iter()
+            .enumerate()
+            .map(|(i, &(si, _))| {
+                let mut before = match self.parents[si] {
+                    Some(par) => fk.joint_rotations[par],
+                    None => Matrix3::identity(),
+                };
+                for &s in &self.out_bones[si] {
+                    if s == i {
+                        break;
+                    }
+                    before *= rodrigues(&r[s]);
+                }
+                before * left_jacobian(&r[i])
+            })
+            .collect()
+    }
+
+    /// Vector-Jacobian product of the marker positions: given `g_k = ∂f/∂m_k` for a scalar
+    /// `f`, returns `(∂f/∂[t, r] (n_pose), ∂f/∂l (n_bones), ∂f/∂v (M))` exactly, in
+    /// O(n_bones · M) without forming the Jacobian. `fk` must come from `(t, r)` with
+    /// [`Skeleton::forward_unchecked`] (or `forward`).
+    pub fn markers_vjp(
+        &self,
+        fk: &FkResult,
+        r: &[Vector3<f64>],
+        g: &[Vector3<f64>],
+    ) -> (Vec<f64>, Vec<f64>, Vec<Vector3<f64>>) {
+        let mut d_pose = vec![0.0; self.n_pose()];
+        let gt: Vector3<f64> = g.iter().sum();
+        d_pose[..3].copy_from_slice(gt.as_slice());
+        let axes = self.rotation_axes(fk, r);
+        for (i, &(si, _)) in self.bones.iter().enumerate() {
+            // Σ_k (m_k − p_start) × g_k over the markers bone i moves.
+            let pivot = fk.joints[si];
+            let mut s = Vector3::zeros();
+            for (k, &mb) in self.marker_bone.iter().enumerate() {
+                if self.is_ancestor_or_self(si, self.bones[mb].0) {
+                    s += (fk.markers[k] - pivot).cross(&g[k]);
+                }
+            }
+            let d = axes[i].transpose() * s;
+            d_pose[3 + 3 * i..6 + 3 * i].copy_from_slice(d.as_slice());
+        }
+        let d_lengths = self
+            .bones
+            .iter()
+            .enumerate()
+            .map(|(b, &(_, eb))| {
+                let axis = fk.bone_rotations[b].column(2);
+                self.marker_joints
+                    .iter()
+                    .zip(g)
+                    .filter(|(&j, _)| self.is_ancestor_or_self(eb, j))
+                    .map(|(_, gk)| axis.dot(gk))
+                    .sum()
+            })
+            .collect();
+        let d_offsets = self
+            .marker_bone
+            .iter()
+            .zip(g)
+            .map(|(&b, gk)| fk.bone_rotations[b].transpose() * gk)
+            .collect();
+        (d_pose, d_lengths, d_offsets)
     }
 
     /// Forward kinematics of `T` poses in parallel.
@@ -1089,6 +1152,47 @@ pub(crate) mod tests {
                 for a in 0..3 {
                     assert!((fd[a] - jac.d_offsets[9 * k + 3 * a + c]).abs() < 1e-7);
                 }
+            }
+        }
+    }
+
+    #[test]
+    #[allow(clippy::needless_range_loop)] // index arithmetic mirrors the Jacobian layout
+    fn markers_vjp_is_jacobian_transpose() {
+        let sk = branching();
+        let (t, r) = pose(11, 0.7, sk.n_bones());
+        let jac = sk.forward_jacobian(&t, &r, None, None).unwrap();
+        let g: Vec<Vector3<f64>> = (0..sk.n_markers())
+            .map(|k| Vector3::new(1.0 + k as f64, -0.5 * k as f64, 0.25))
+            .collect();
+        let (dp, dl, dv) = sk.markers_vjp(&jac.fk, &r, &g);
+        let (nj, cols, nb) = (sk.n_joints(), sk.n_pose(), sk.n_bones());
+        for c in 0..cols {
+            let expect: f64 = (0..sk.n_markers())
+                .map(|k| {
+                    (0..3)
+                        .map(|a| jac.d_pose[(3 * (nj + k) + a) * cols + c] * g[k][a])
+                        .sum::<f64>()
+                })
+                .sum();
+            assert!((dp[c] - expect).abs() < 1e-12, "pose {c}");
+        }
+        for b in 0..nb {
+            let expect: f64 = (0..sk.n_markers())
+                .map(|k| {
+                    (0..3)
+                        .map(|a| jac.d_lengths[(3 * (nj + k) + a) * nb + b] * g[k][a])
+                        .sum::<f64>()
+                })
+                .sum();
+            assert!((dl[b] - expect).abs() < 1e-12, "length {b}");
+        }
+        for k in 0..sk.n_markers() {
+            for c in 0..3 {
+                let expect: f64 = (0..3)
+                    .map(|a| jac.d_offsets[9 * k + 3 * a + c] * g[k][a])
+                    .sum();
+                assert!((dv[k][c] - expect).abs() < 1e-12);
             }
         }
     }

@@ -9,6 +9,7 @@ joint-limit state map (Alg. 10), all with exact derivatives computed in Rust.
 from . import gapfill, models
 from ._native import AcmNumericalError
 from .camera import PARAM_NAMES, Camera, CameraRig
+from .learning import LearnedSkeleton, fit_pose, learn_skeleton
 from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
 from .skeleton import BoneLengthConstraint, FKJacobian, Skeleton, SymmetryMap
 from .state import Normalization, StateMap
@@ -21,6 +22,7 @@ __all__ = [
     "Camera",
     "CameraRig",
     "FKJacobian",
+    "LearnedSkeleton",
     "Normalization",
     "PARAM_NAMES",
     "Skeleton",
@@ -28,6 +30,8 @@ __all__ = [
     "SymmetryMap",
     "__version__",
     "gapfill",
+    "fit_pose",
+    "learn_skeleton",
     "models",
     "rodrigues",
     "rodrigues_inverse",

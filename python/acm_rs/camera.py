@@ -8,12 +8,16 @@
 
 from __future__ import annotations
 
+import re
+import tomllib
 from collections.abc import Iterable, Iterator, Sequence
+from pathlib import Path
 
 import numpy as np
 
-from . import _native
+from . import _native, _toml
 from ._arrays import as_float_array
+from ._io import atomic_write
 from .rotation import rodrigues
 
 #: Order of the 15 camera parameters used by :attr:`Camera.params` and the Jacobians.
@@ -278,6 +282,65 @@ class CameraRig:
             Pixels; NaN where a point is missing or behind a camera.
         """
         return _project(self.get_params(), points)
+
+    def save(self, path: str | Path, metadata: dict | None = None) -> None:
+        """Write an anipose-compatible ``calibration.toml`` (atomically).
+
+        Tables ``[cam_0]``, ``[cam_1]``, ... in rig order with ``name``, ``size``, ``matrix``,
+        ``distortions`` (OpenCV order), ``rotation`` (Rodrigues, world to camera) and
+        ``translation``; optional ``[metadata]``.
+        """
+        doc: dict = {}
+        for i, cam in enumerate(self.cameras):
+            table = cam.to_dict()
+            if not table["name"]:
+                table["name"] = f"cam_{i}"
+            doc[f"cam_{i}"] = table
+        if metadata:
+            doc["metadata"] = dict(metadata)
+        with atomic_write(path) as fh:
+            fh.write(_toml.dumps(doc))
+
+    @classmethod
+    def load(cls, path: str | Path, names: Sequence[str] | None = None) -> CameraRig:
+        """Read an anipose ``calibration.toml``.
+
+        Parameters
+        ----------
+        path : path
+        names : sequence of str, optional
+            Camera names in the wanted order (cameras are matched by name, not table order);
+            default: the ``cam_<i>`` tables in numeric order.
+
+        Raises
+        ------
+        ValueError
+            Invalid TOML, no camera tables, a missing key, or a requested name that is absent.
+        """
+        p = Path(path)
+        try:
+            doc = tomllib.loads(p.read_text(encoding="utf-8"))
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"{p}: invalid TOML: {exc}") from None
+        tables = {
+            k: v
+            for k, v in doc.items()
+            if isinstance(v, dict) and re.fullmatch(r"cam_\d+", k)
+        }
+        if not tables:
+            raise ValueError(f"{p}: no [cam_<i>] tables (not an anipose calibration file)")
+        ordered = [tables[k] for k in sorted(tables, key=lambda k: int(k[4:]))]
+        try:
+            cams = [Camera.from_dict(t) for t in ordered]
+        except ValueError as exc:
+            raise ValueError(f"{p}: {exc}") from None
+        if names is not None:
+            by_name = {c.name: c for c in cams}
+            missing = [n for n in names if n not in by_name]
+            if missing:
+                raise ValueError(f"{p}: no camera named {missing}; cameras: {list(by_name)}")
+            cams = [by_name[n] for n in names]
+        return cls(cams)
 
     def __repr__(self) -> str:
         return f"CameraRig({len(self)} cameras: {self.names})"

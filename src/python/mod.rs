@@ -5,6 +5,7 @@
 
 mod error;
 mod gapfill;
+mod learning;
 
 use crate::camera::{self, Camera};
 use crate::emission;
@@ -594,6 +595,7 @@ fn native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PySkeleton>()?;
     m.add_class::<PySymmetry>()?;
     m.add_class::<PyStateMap>()?;
+    m.add_class::<learning::PyLearning>()?;
     m.add("AcmNumericalError", m.py().get_type::<AcmNumericalError>())?;
     m.add("N_CAMERA_PARAMS", camera::N_PARAMS)?;
     gapfill::register(m)?;

@@ -1,0 +1,654 @@
+"""Learning the animal's skeleton and fitting poses (ACM supplement sections 3.2-3.4, 4.7).
+
+:func:`learn_skeleton` minimises eq. 9 with the symmetric parameterisation of eq. 12 (reduced
+bone lengths ``l*`` and marker offsets ``v*``, Alg. 2-3) jointly with every frame's pose, using
+``scipy.optimize.minimize(method="L-BFGS-B")`` on the value and exact gradient computed in Rust
+(in parallel over frames). Poses are normalised as in sec. 3.3 (``t / c_t``, ``r / c_r``);
+joint-angle limits (Supp. Table 1), marker box constraints (sec. 6) and bone-length priors
+(Supp. Table 2) are box bounds of L-BFGS-B.
+
+Steps: (1) a robust initial pose per frame without user input: triangulate the labelled markers
+(DLT on undistorted points), then align the generic model (rotations at the middle of their
+limits) to them by iteratively reweighted Kabsch; (2) refine all poses with the generic skeleton
+fixed; (3) learn lengths, offsets and poses together.
+
+:func:`fit_pose` is the first-pose fit of sec. 4.7 (eq. 9 for one frame, ``l`` and ``v`` fixed)
+that initialises the tracker's ``mu_0``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.optimize import minimize
+
+from . import _native
+from ._arrays import as_float_array
+from ._io import atomic_write
+from .camera import CameraRig
+from .rotation import rodrigues, rodrigues_inverse
+from .skeleton import Skeleton
+from .state import Normalization
+
+__all__ = [
+    "LBFGSB_DEFAULTS",
+    "LearnedSkeleton",
+    "fit_pose",
+    "initial_poses",
+    "learn_skeleton",
+    "match_marker_names",
+    "triangulate",
+]
+
+#: The authors' L-BFGS-B settings (overridable through ``options=``).
+LBFGSB_DEFAULTS: dict[str, float | int] = {
+    "maxcor": 100,
+    "maxls": 200,
+    "ftol": 2.0**-23,
+    "gtol": 1e-10,
+    "maxiter": 5000,
+    "maxfun": 20000,
+}
+
+
+# -- inputs ---------------------------------------------------------------------------------
+def match_marker_names(label_names: Sequence[str], skeleton: Skeleton) -> np.ndarray:
+    """Map label column names to skeleton marker indices.
+
+    Accepts the skeleton's names and the ACM/DeepLabCut spellings ``marker_<name>_start`` and
+    ``spot_<name>``. Raises ``ValueError`` naming every unknown label.
+    """
+    known = {n: i for i, n in enumerate(skeleton.marker_names)}
+    out, unknown = [], []
+    for name in label_names:
+        key = str(name)
+        if key not in known:
+            for prefix in ("marker_", "spot_"):
+                key = key.removeprefix(prefix)
+            key = key.removesuffix("_start")
+        if key in known:
+            out.append(known[key])
+        else:
+            unknown.append(str(name))
+    if unknown:
+        raise ValueError(
+            f"labels for unknown markers {unknown}; the skeleton's markers are "
+            f"{list(skeleton.marker_names)}"
+        )
+    if len(set(out)) != len(out):
+        raise ValueError("two label columns map to the same skeleton marker")
+    return np.asarray(out, dtype=np.int64)
+
+
+def _labels_in_skeleton_order(
+    labels: np.ndarray, skeleton: Skeleton, rig: CameraRig, marker_names: Sequence[str] | None
+) -> np.ndarray:
+    lab = as_float_array(labels, "labels", (None, None, None, 2), finite=False)
+    if lab.ndim != 4:
+        raise ValueError(f"labels must have shape (n_cams, n_frames, n_markers, 2), got {lab.shape}")
+    if np.isinf(lab).any():
+        raise ValueError("labels contain infinity (use NaN for unlabelled points)")
+    if lab.shape[0] != len(rig):
+        raise ValueError(f"labels are for {lab.shape[0]} cameras but the rig has {len(rig)}")
+    if marker_names is None:
+        if lab.shape[2] != skeleton.n_markers:
+            raise ValueError(
+                f"labels have {lab.shape[2]} markers but the skeleton has {skeleton.n_markers}; "
+                "pass marker_names to map label columns by name"
+            )
+        return lab
+    if len(marker_names) != lab.shape[2]:
+        raise ValueError(f"{len(marker_names)} marker_names for {lab.shape[2]} label columns")
+    idx = match_marker_names(marker_names, skeleton)
+    out = np.full(lab.shape[:2] + (skeleton.n_markers, 2), np.nan)
+    out[:, :, idx] = lab
+    return out
+
+
+# -- initial guess --------------------------------------------------------------------------
+def triangulate(rig: CameraRig, points_2d: np.ndarray, min_views: int = 2) -> np.ndarray:
+    """Linear (DLT) triangulation of undistorted 2D points from every camera that sees them.
+
+    Parameters
+    ----------
+    rig : CameraRig
+    points_2d : array_like, shape (n_cams, ..., 2)
+        Pixels, NaN where a point is not seen.
+    min_views : int
+        Points seen in fewer cameras stay NaN.
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., 3)
+        World coordinates (NaN where not triangulated).
+    """
+    pts = as_float_array(points_2d, "points_2d", (None, 2), finite=False)
+    if pts.shape[0] != len(rig):
+        raise ValueError(f"points_2d has {pts.shape[0]} cameras, the rig {len(rig)}")
+    lead = pts.shape[1:-1]
+    flat = pts.reshape(len(rig), -1, 2)
+    n = flat.shape[1]
+    a = np.zeros((n, 2 * len(rig), 4))
+    for c, cam in enumerate(rig):
+        ok = np.all(np.isfinite(flat[c]), axis=1)
+        if not ok.any():
+            continue
+        und = cv2.undistortPoints(
+            flat[c, ok].reshape(-1, 1, 2), cam.matrix, cam.dist
+        ).reshape(-1, 2)
+        proj = np.hstack([cam.rotation_matrix, cam.tvec[:, None]])
+        a[ok, 2 * c] = und[:, :1] * proj[2] - proj[0]
+        a[ok, 2 * c + 1] = und[:, 1:] * proj[2] - proj[1]
+    views = np.sum(np.all(np.isfinite(flat), axis=2), axis=0)
+    out = np.full((n, 3), np.nan)
+    good = views >= min_views
+    if good.any():
+        _, _, vt = np.linalg.svd(a[good])
+        h = vt[:, -1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out[good] = h[:, :3] / h[:, 3:]
+    return out.reshape(lead + (3,))
+
+
+def _kabsch(x: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation and translation minimising sum w |R x + t - y|^2 (proper rotation)."""
+    w = w / w.sum()
+    mx, my = w @ x, w @ y
+    h = (x - mx).T @ ((y - my) * w[:, None])
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return rot, my - rot @ mx
+
+
+def initial_poses(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    labels: np.ndarray,
+    normalization: Normalization | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rough per-frame poses from labels, without user input.
+
+    Triangulates the labelled markers and aligns the generic model (every limited rotation at
+    the middle of its range) to them with iteratively reweighted Kabsch (central markers
+    weigh more than limb markers). Frames with fewer than 3 triangulated markers take the
+    median rotation of the others and the centroid of what they have.
+
+    Parameters
+    ----------
+    labels : array_like, shape (n_cams, n_frames, M, 2)
+
+    Returns
+    -------
+    t : numpy.ndarray, shape (n_frames, 3)
+    r : numpy.ndarray, shape (n_frames, n_bones, 3)
+    """
+    sm = skeleton.state_map(normalization, joint_limits=True)
+    _, r_mid = sm.to_pose(np.zeros(sm.n_state))
+    _, neutral = skeleton.forward(np.zeros(3), r_mid)  # root at the origin
+    pts = triangulate(rig, labels)  # (F, M, 3)
+    n_frames = pts.shape[0]
+    paired = {m for pair in skeleton.symmetry.get("markers", []) for m in pair}
+    base_w = np.array([0.3 if n in paired else 1.0 for n in skeleton.marker_names])
+    rots = np.full((n_frames, 3, 3), np.nan)
+    ts = np.full((n_frames, 3), np.nan)
+    for f in range(n_frames):
+        ok = np.all(np.isfinite(pts[f]), axis=1)
+        if ok.sum() < 3:
+            continue
+        x, y, w = neutral[ok], pts[f, ok], base_w[ok]
+        for _ in range(5):
+            rot, t = _kabsch(x, y, w)
+            res = np.linalg.norm(x @ rot.T + t - y, axis=1)
+            s = max(np.median(res), 1e-9)
+            w = base_w[ok] / np.maximum(1.0, res / (2.0 * s))  # Huber-like downweighting
+        rots[f], ts[f] = rot, t
+    aligned = np.isfinite(ts[:, 0])
+    if not aligned.any():
+        raise ValueError(
+            "no frame has 3 markers labelled in at least 2 cameras; cannot place the model"
+        )
+    r0_med = rodrigues(np.median(rodrigues_inverse(rots[aligned]), axis=0))
+    for f in np.flatnonzero(~aligned):
+        ok = np.all(np.isfinite(pts[f]), axis=1)
+        rots[f] = r0_med
+        centre = pts[f, ok].mean(axis=0) if ok.any() else np.median(ts[aligned], axis=0)
+        ts[f] = centre - r0_med @ (neutral[ok].mean(axis=0) if ok.any() else neutral.mean(0))
+    r = np.repeat(r_mid[None], n_frames, axis=0)
+    # The global rotation acts first (outermost): R_global = Kabsch rotation.
+    r[:, 0] = rodrigues_inverse(rots @ rodrigues(r_mid[0]))
+    return ts, r
+
+
+# -- the optimisation -----------------------------------------------------------------------
+def _reduced_indices(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the central + left bones and markers in Alg. 2-3 order."""
+    sym = skeleton.symmetry
+    right_bones = {skeleton.bone_index(r) for _, r in sym.get("joints", [])}
+    right_markers = {skeleton.marker_index(r) for _, r in sym.get("markers", [])}
+    bones = np.array([b for b in range(skeleton.n_bones) if b not in right_bones], dtype=int)
+    markers = np.array([k for k in range(skeleton.n_markers) if k not in right_markers], dtype=int)
+    return bones, markers
+
+
+def _pairs(skeleton: Skeleton, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
+    if not symmetric:
+        return np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64)
+    sym = skeleton.symmetry
+    bp = [(skeleton.bone_index(a), skeleton.bone_index(b)) for a, b in sym.get("joints", [])]
+    mp = [(skeleton.marker_index(a), skeleton.marker_index(b)) for a, b in sym.get("markers", [])]
+    return np.array(bp, np.int64).reshape(-1, 2), np.array(mp, np.int64).reshape(-1, 2)
+
+
+def _pose_bounds(skeleton: Skeleton, norm: Normalization) -> list[tuple[float | None, float | None]]:
+    lim = skeleton.joint_limits.reshape(-1, 2)
+    free = ~skeleton.fixed_pose_mask
+    out: list[tuple[float | None, float | None]] = [(None, None)] * 3
+    for lo, hi in lim[free[3:]]:
+        out.append(
+            (
+                lo / norm.rotation if np.isfinite(lo) else None,
+                hi / norm.rotation if np.isfinite(hi) else None,
+            )
+        )
+    return out
+
+
+def _to_state(t: np.ndarray, r: np.ndarray, skeleton: Skeleton, norm: Normalization) -> np.ndarray:
+    pose = np.concatenate([t / norm.translation, r.reshape(len(t), -1) / norm.rotation], axis=1)
+    return pose[:, ~skeleton.fixed_pose_mask]
+
+
+def _clip_to_bounds(x: np.ndarray, bounds: Sequence[tuple[float | None, float | None]]) -> np.ndarray:
+    lo = np.array([-np.inf if b[0] is None else b[0] for b in bounds])
+    hi = np.array([np.inf if b[1] is None else b[1] for b in bounds])
+    return np.clip(x, lo, hi)
+
+
+class _Progress:
+    """Iteration counter for L-BFGS-B with an optional tqdm bar."""
+
+    def __init__(self, enabled: bool, desc: str, total: int) -> None:
+        self.values: list[float] = []
+        self.bar = None
+        if enabled:
+            try:
+                from tqdm.auto import tqdm
+
+                self.bar = tqdm(total=total, desc=desc, unit="it", leave=False)
+            except ImportError:  # pragma: no cover - tqdm is a dependency
+                self.bar = None
+
+    def __call__(self, intermediate_result) -> None:
+        self.values.append(float(intermediate_result.fun))
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix(rms_px=f"{np.sqrt(max(self.values[-1], 0.0)):.3f}")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _minimize(
+    problem: _native.NativeLearning,
+    x0: np.ndarray,
+    bounds: list,
+    scale: float,
+    options: dict,
+    progress: bool,
+    desc: str,
+):
+    def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
+        f, g = problem.value_and_grad(x)
+        return f * scale, g * scale
+
+    prog = _Progress(progress, desc, int(options.get("maxiter", 5000)))
+    try:
+        res = minimize(
+            fun, x0, jac=True, method="L-BFGS-B", bounds=bounds, options=options, callback=prog
+        )
+    finally:
+        prog.close()
+    return res, prog.values
+
+
+@dataclass
+class LearnedSkeleton:
+    """Result of :func:`learn_skeleton`.
+
+    Attributes
+    ----------
+    skeleton : Skeleton
+        The generic model with the learned bone lengths and marker offsets.
+    t : numpy.ndarray, shape (n_frames, 3)
+        Per-frame translations (world units).
+    r : numpy.ndarray, shape (n_frames, n_bones, 3)
+        Per-frame bone rotations (rad).
+    labels, projected : numpy.ndarray, shape (n_cams, n_frames, M, 2)
+        The labels (skeleton marker order) and the learned model's reprojections (px).
+    errors : numpy.ndarray, shape (n_cams, n_frames, M)
+        Reprojection error per label (px), NaN where unlabelled.
+    info : dict
+        Optimiser outcome per stage (``success``, ``message``, ``nit``, ``fun``, ``seconds``)
+        and the objective history.
+    """
+
+    skeleton: Skeleton
+    t: np.ndarray
+    r: np.ndarray
+    labels: np.ndarray
+    projected: np.ndarray
+    errors: np.ndarray
+    rig: CameraRig
+    generic: Skeleton
+    info: dict = field(default_factory=dict)
+
+    @property
+    def rms(self) -> float:
+        """Root-mean-square reprojection error over all labels (px)."""
+        e = self.errors[np.isfinite(self.errors)]
+        return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+
+    @property
+    def per_marker_error(self) -> np.ndarray:
+        """(M,) mean reprojection error per marker (px; NaN if never labelled)."""
+        with np.errstate(invalid="ignore"):
+            return np.nanmean(np.where(np.isfinite(self.errors), self.errors, np.nan), axis=(0, 1))
+
+    @property
+    def per_camera_error(self) -> np.ndarray:
+        """(n_cams,) mean reprojection error per camera (px)."""
+        return np.nanmean(self.errors.reshape(len(self.rig), -1), axis=1)
+
+    def summary(self) -> str:
+        """A short text report."""
+        lines = [
+            f"learned {self.skeleton.name}: {self.t.shape[0]} frames, "
+            f"{int(np.isfinite(self.errors).sum())} labels, RMS reprojection error "
+            f"{self.rms:.2f} px",
+            "  per camera (px): "
+            + ", ".join(f"{n or i}: {e:.2f}" for i, (n, e) in enumerate(
+                zip(self.rig.names, self.per_camera_error, strict=True))),
+        ]
+        worst = np.argsort(np.nan_to_num(self.per_marker_error, nan=-1))[::-1][:5]
+        lines.append(
+            "  worst markers (px): "
+            + ", ".join(f"{self.skeleton.marker_names[k]} {self.per_marker_error[k]:.2f}"
+                        for k in worst)
+        )
+        for stage, st in self.info.get("stages", {}).items():
+            lines.append(
+                f"  {stage}: {st['nit']} iterations, {st['seconds']:.1f} s, {st['message']}"
+            )
+        return "\n".join(lines)
+
+    def pose_state(self, frame: int = 0, normalization: Normalization | None = None,
+                   joint_limits: bool = True) -> np.ndarray:
+        """The tracker state of one learned frame (e.g. ``mu_0``), shape (n_state,)."""
+        sm = self.skeleton.state_map(normalization, joint_limits)
+        return sm.from_pose(self.t[frame], self.r[frame])
+
+    def plot_reprojection(self, frame: int | None = None):
+        """Labelled (crosses) vs reprojected markers in every camera, like Supp. Fig. 2."""
+        from .plotting import camera_views
+
+        if frame is None:
+            frame = int(np.argmax(np.isfinite(self.errors).sum(axis=(0, 2))))
+        joints, markers = self.skeleton.forward(self.t[frame], self.r[frame])
+        return camera_views(self.rig, self.skeleton, joints, markers, self.labels[:, frame])
+
+    def plot_skeleton(self):
+        """Generic vs learned skeleton, top and side views, rotations mid-range (Supp. Fig. 1c)."""
+        from .plotting import _pyplot, draw_skeleton_2d
+
+        plt = _pyplot()
+        fig, axes = plt.subplots(2, 2, figsize=(10, 8))
+        for row, (sk, label) in enumerate(((self.generic, "generic"), (self.skeleton, "learned"))):
+            sm = sk.state_map()
+            t, r = sm.to_pose(np.zeros(sm.n_state))
+            j, m = sk.forward(np.zeros(3), r)
+            # body frame: x lateral, y dorsal, z caudal -> top view (z, x), side view (z, y)
+            for ax, (a, b), view in zip(axes[row], [(2, 0), (2, 1)], ["top", "side"], strict=True):
+                draw_skeleton_2d(ax, sk, j[:, [a, b]], m[:, [a, b]])
+                ax.set_aspect("equal")
+                ax.set_title(f"{label}: {view}")
+                ax.set_xlabel(f"{'xyz'[a]} ({sk.units})")
+                ax.set_ylabel(f"{'xyz'[b]} ({sk.units})")
+                ax.grid(alpha=0.3)
+        fig.tight_layout()
+        return fig
+
+    def save(self, prefix: str | Path) -> list[Path]:
+        """Write ``<prefix>.toml`` (the learned skeleton) and ``<prefix>_fit.npz`` (poses,
+        labels, reprojections, errors), atomically."""
+        prefix = Path(prefix)
+        skel_path = prefix.with_suffix(".toml")
+        self.skeleton.save(skel_path)
+        npz_path = prefix.with_name(prefix.name + "_fit.npz")
+        with atomic_write(npz_path, "wb") as fh:
+            np.savez_compressed(
+                fh, t=self.t, r=self.r, labels=self.labels, projected=self.projected,
+                errors=self.errors, bone_lengths=self.skeleton.bone_lengths,
+                marker_offsets=self.skeleton.marker_offsets,
+                marker_names=np.array(self.skeleton.marker_names),
+            )  # fmt: skip
+        return [skel_path, npz_path]
+
+
+def learn_skeleton(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    labels: np.ndarray,
+    *,
+    body_weight: float | None = None,
+    symmetric: bool = True,
+    progress: bool = True,
+    marker_names: Sequence[str] | None = None,
+    normalization: Normalization | None = None,
+    sigma_factor: float = 10.0,
+    options: dict | None = None,
+    init: tuple[np.ndarray, np.ndarray] | None = None,
+) -> LearnedSkeleton:
+    """Learn bone lengths, marker offsets and per-frame poses from labelled frames (eq. 12).
+
+    Parameters
+    ----------
+    rig : CameraRig
+        Calibrated cameras (world units = the skeleton's units).
+    skeleton : Skeleton
+        The generic model (e.g. ``acm_rs.models.rat()``): starting lengths and offsets, joint
+        limits, marker boxes, symmetry pairs and bone-length priors.
+    labels : array_like, shape (n_cams, n_frames, n_markers, 2)
+        Manual labels in pixels, NaN where a marker is not labelled. Columns are the
+        skeleton's markers, or named by ``marker_names``.
+    body_weight : float, optional
+        Body weight (g) for weight-proportional bone-length priors (rat). Without it (and
+        without absolute priors) lengths are bounded to [0.2, 5] x their generic value.
+    symmetric : bool
+        Enforce left/right symmetry (Alg. 2-3).
+    progress : bool
+        Show a progress bar.
+    marker_names : sequence of str, optional
+        Names of the label columns (ACM ``spot_``/``marker_..._start`` spellings accepted).
+    normalization : Normalization, optional
+        Sec. 3.3 constants (default: the paper's). Lengths and offsets are scaled by
+        ``normalization.translation / 50`` in the optimiser.
+    sigma_factor : float
+        Width of the bone-length priors in standard deviations (authors: 10).
+    options : dict, optional
+        L-BFGS-B options overriding :data:`LBFGSB_DEFAULTS`.
+    init : (t, r), optional
+        Initial poses ``(n_frames, 3)``, ``(n_frames, n_bones, 3)``; default
+        :func:`initial_poses`.
+
+    Returns
+    -------
+    LearnedSkeleton
+
+    Raises
+    ------
+    ValueError
+        Wrong shapes, labels for unknown markers, a frame with fewer than 3 labelled points,
+        infinite labels, or labels for a different number of cameras.
+    """
+    norm = normalization or Normalization()
+    lab = _labels_in_skeleton_order(labels, skeleton, rig, marker_names)
+    n_frames = lab.shape[1]
+    if n_frames == 0:
+        raise ValueError("labels contain no frames")
+    counts = np.isfinite(lab).all(axis=-1).sum(axis=(0, 2))
+    if (counts < 3).any():
+        f = int(np.flatnonzero(counts < 3)[0])
+        raise ValueError(
+            f"frame {f} has {counts[f]} labelled 2D points in total; at least 3 are needed"
+        )
+    opts = {**LBFGSB_DEFAULTS, **(options or {})}
+    scale = norm.pixel[0] * norm.pixel[1]  # objective in ~px^2, as scipy's ftol expects O(1)
+    length_scale = norm.translation / 50.0
+    params = rig.get_params()
+    lab_fcm = np.ascontiguousarray(lab.transpose(1, 0, 2, 3))
+    lim = skeleton.joint_limits
+    lower, upper = np.ascontiguousarray(lim[..., 0]), np.ascontiguousarray(lim[..., 1])
+    bp, mp = _pairs(skeleton, symmetric)
+    info: dict = {"stages": {}}
+
+    # (1) initial poses
+    t0 = time.perf_counter()
+    t_init, r_init = init if init is not None else initial_poses(rig, skeleton, lab, norm)
+    pose_bounds = _pose_bounds(skeleton, norm)
+    z0 = _to_state(np.asarray(t_init, float), np.asarray(r_init, float), skeleton, norm)
+    z0 = np.stack([_clip_to_bounds(z, pose_bounds) for z in z0])
+    info["stages"]["init"] = {"nit": 0, "seconds": time.perf_counter() - t0, "message": "ok"}
+
+    # (2) poses with the generic skeleton fixed
+    poses_only = _native.NativeLearning(
+        skeleton._native, params, lab_fcm, lower, upper, norm._tuple(), bp, mp, length_scale,
+        skeleton.bone_lengths, skeleton.marker_offsets,
+    )  # fmt: skip
+    t0 = time.perf_counter()
+    res1, hist1 = _minimize(
+        poses_only, z0.ravel(), pose_bounds * n_frames, scale, opts, progress, "poses"
+    )
+    info["stages"]["poses"] = _stage(res1, t0)
+
+    # (3) everything together
+    full = _native.NativeLearning(
+        skeleton._native, params, lab_fcm, lower, upper, norm._tuple(), bp, mp, length_scale
+    )
+    if symmetric:
+        rb, rm = _reduced_indices(skeleton)
+    else:
+        rb, rm = np.arange(skeleton.n_bones), np.arange(skeleton.n_markers)
+    generic_l = skeleton.bone_lengths
+    prior = skeleton.bone_length_bounds(body_weight, sigma_factor)
+    l_lo = np.where(prior[:, 0] > 0, prior[:, 0], 0.2 * generic_l)
+    l_hi = np.where(np.isfinite(prior[:, 1]), prior[:, 1], 5.0 * generic_l)
+    if np.any(l_lo >= l_hi):
+        b = int(np.flatnonzero(l_lo >= l_hi)[0])
+        raise ValueError(f"bone-length bounds of {skeleton.bone_names[b]!r} are empty: "
+                         f"[{l_lo[b]}, {l_hi[b]}]")  # fmt: skip
+    mb = skeleton.marker_bounds
+    x_bounds = [(lo / length_scale, hi / length_scale) for lo, hi in zip(l_lo[rb], l_hi[rb],
+                                                                        strict=True)]
+    for k in rm:
+        for ax in range(3):
+            lo, hi = mb[k, ax]
+            x_bounds.append((lo / length_scale if np.isfinite(lo) else None,
+                             hi / length_scale if np.isfinite(hi) else None))  # fmt: skip
+    x_skel = np.concatenate([generic_l[rb], skeleton.marker_offsets[rm].ravel()]) / length_scale
+    x0 = np.concatenate([_clip_to_bounds(x_skel, x_bounds), res1.x])
+    bounds = x_bounds + pose_bounds * n_frames
+    t0 = time.perf_counter()
+    res2, hist2 = _minimize(full, x0, bounds, scale, opts, progress, "skeleton")
+    info["stages"]["skeleton"] = _stage(res2, t0)
+    info["history"] = {"poses": hist1, "skeleton": hist2}
+
+    projected, lengths, offsets, poses = full.residuals(res2.x)
+    learned = skeleton.with_parameters(lengths, offsets)
+    projected = projected.transpose(1, 0, 2, 3)
+    errors = np.linalg.norm(projected - lab, axis=-1)
+    return LearnedSkeleton(
+        skeleton=learned,
+        t=poses[:, :3],
+        r=poses[:, 3:].reshape(n_frames, skeleton.n_bones, 3),
+        labels=lab,
+        projected=projected,
+        errors=errors,
+        rig=rig,
+        generic=skeleton,
+        info=info,
+    )
+
+
+def _stage(res, t0: float) -> dict:
+    return {
+        "success": bool(res.success),
+        "message": str(res.message),
+        "nit": int(res.nit),
+        "nfev": int(res.nfev),
+        "fun": float(res.fun),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def fit_pose(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    labels: np.ndarray,
+    *,
+    normalization: Normalization | None = None,
+    init: tuple[np.ndarray, np.ndarray] | None = None,
+    options: dict | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """First-pose fit (sec. 4.7): eq. 9 for one frame with lengths and offsets fixed.
+
+    Parameters
+    ----------
+    labels : array_like, shape (n_cams, M, 2)
+        2D marker positions of one frame (px), NaN where missing.
+    init : (t (3,), r (n_bones, 3)), optional
+        Starting pose; default from :func:`initial_poses`.
+
+    Returns
+    -------
+    t : numpy.ndarray, shape (3,)
+    r : numpy.ndarray, shape (n_bones, 3)
+    info : dict
+        Optimiser outcome and the RMS reprojection error (px).
+    """
+    norm = normalization or Normalization()
+    lab = as_float_array(labels, "labels", (None, None, 2), finite=False)
+    if lab.ndim != 3:
+        raise ValueError(f"labels must have shape (n_cams, n_markers, 2), got {lab.shape}")
+    lab4 = _labels_in_skeleton_order(lab[:, None], skeleton, rig, None)
+    if np.isfinite(lab4).all(axis=-1).sum() < 3:
+        raise ValueError("the frame has fewer than 3 labelled 2D points")
+    if init is None:
+        t_i, r_i = initial_poses(rig, skeleton, lab4, norm)
+    else:
+        t_i, r_i = np.asarray(init[0], float)[None], np.asarray(init[1], float)[None]
+    lim = skeleton.joint_limits
+    bp, mp = _pairs(skeleton, False)
+    problem = _native.NativeLearning(
+        skeleton._native, rig.get_params(), np.ascontiguousarray(lab4.transpose(1, 0, 2, 3)),
+        np.ascontiguousarray(lim[..., 0]), np.ascontiguousarray(lim[..., 1]), norm._tuple(),
+        bp, mp, norm.translation / 50.0, skeleton.bone_lengths, skeleton.marker_offsets,
+    )  # fmt: skip
+    bounds = _pose_bounds(skeleton, norm)
+    z0 = _clip_to_bounds(_to_state(t_i, r_i, skeleton, norm)[0], bounds)
+    t0 = time.perf_counter()
+    res, _ = _minimize(
+        problem, z0, bounds, norm.pixel[0] * norm.pixel[1],
+        {**LBFGSB_DEFAULTS, **(options or {})}, False, "pose",
+    )  # fmt: skip
+    projected, _, _, poses = problem.residuals(res.x)
+    err = np.linalg.norm(projected[0] - lab4[:, 0], axis=-1)
+    info = _stage(res, t0) | {"rms_px": float(np.sqrt(np.nanmean(err**2)))}
+    return poses[0, :3], poses[0, 3:].reshape(skeleton.n_bones, 3), info
+

@@ -1,0 +1,491 @@
+//! Learning bone lengths and marker offsets from labelled frames (ACM supp. sections 3.2-3.4):
+//! the objective of eq. 9 with the symmetric parameterisation of eq. 12 (Alg. 2-3), normalised
+//! as in sec. 3.3, and its exact gradient, evaluated in parallel over frames.
+//!
+//! Parameter vector (what L-BFGS-B sees):
+//! * [`Mode::Full`]: `[l* / s, v* / s, z_0, z_1, …]` with the reduced lengths `l*` (Alg. 2),
+//!   the reduced offsets `v*` (Alg. 3, flat), the length scale `s`, and one state `z_τ` per
+//!   frame (the free pose entries of a linear [`StateMap`]: `t = c_t z`, `r = c_r z`).
+//! * [`Mode::PosesOnly`]: `[z_0, z_1, …]` with fixed lengths and offsets (sec. 4.7, the
+//!   first-pose fit, and the per-frame initialisation).
+//!
+//! Objective: the mean over labelled (frame, camera, marker) of the squared normalised pixel
+//! residual `((û − u)/c_1)² + ((v̂ − v)/c_2)²` (eq. 9 with eq. 11 divided by the number of
+//! labels, so its value does not grow with the data set).
+
+use crate::camera::Camera;
+use crate::error::{ensure_finite, ensure_len, AcmError, Result};
+use crate::limits::StateMap;
+use crate::normalization::Normalization;
+use crate::skeleton::Skeleton;
+use crate::symmetry::SymmetryMap;
+use nalgebra::Vector3;
+use rayon::prelude::*;
+
+/// What is optimised.
+#[derive(Debug, Clone)]
+pub enum Mode {
+    /// Reduced lengths and offsets shared by all frames plus every frame's pose.
+    Full,
+    /// Only the poses; lengths and offsets fixed at the given values.
+    PosesOnly {
+        /// Bone lengths (n_bones).
+        lengths: Vec<f64>,
+        /// Marker offsets (M).
+        offsets: Vec<Vector3<f64>>,
+    },
+}
+
+/// The learning objective for one skeleton, rig and label set.
+#[derive(Debug, Clone)]
+pub struct LearningProblem {
+    skeleton: Skeleton,
+    cameras: Vec<Camera>,
+    norm: Normalization,
+    map: StateMap,
+    sym: SymmetryMap,
+    /// `(F, C, M, 2)` pixels, NaN where unlabelled.
+    labels: Vec<f64>,
+    n_frames: usize,
+    n_labels: usize,
+    length_scale: f64,
+    mode: Mode,
+}
+
+/// Per-label residuals of a parameter vector.
+#[derive(Debug, Clone)]
+pub struct Residuals {
+    /// `(F, C, M, 2)` reprojected pixels (NaN where behind a camera).
+    pub projected: Vec<f64>,
+    /// Lengths used (n_bones).
+    pub lengths: Vec<f64>,
+    /// Offsets used (M, flat 3).
+    pub offsets: Vec<f64>,
+    /// Full poses `(F, 3 + 3 n_bones)`.
+    pub poses: Vec<f64>,
+}
+
+impl LearningProblem {
+    /// Builds the objective.
+    ///
+    /// # Arguments
+    /// * `labels` - `(F, C, M, 2)` flat pixels, NaN where a marker is not labelled in a camera.
+    /// * `map` - the pose parameterisation (a linear [`StateMap`]; joint limits become box
+    ///   bounds of L-BFGS-B).
+    /// * `sym` - symmetry map (use one without pairs for an asymmetric fit).
+    /// * `length_scale` - divides lengths and offsets in the parameter vector (> 0).
+    ///
+    /// # Errors
+    /// Shape errors for inconsistent sizes; invalid errors for no labels at all, a frame with
+    /// fewer than 3 labelled 2D points, infinite labels or a non-positive length scale.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        skeleton: Skeleton,
+        cameras: Vec<Camera>,
+        norm: Normalization,
+        map: StateMap,
+        sym: SymmetryMap,
+        labels: Vec<f64>,
+        length_scale: f64,
+        mode: Mode,
+    ) -> Result<Self> {
+        norm.validate()?;
+        ensure_len(map.n_pose(), skeleton.n_pose(), "state map pose length")?;
+        if !(length_scale.is_finite() && length_scale > 0.0) {
+            return Err(AcmError::Invalid(format!(
+                "length scale must be finite and > 0, got {length_scale}"
+            )));
+        }
+        let per_frame = cameras.len() * skeleton.n_markers() * 2;
+        if per_frame == 0 || labels.len() % per_frame != 0 {
+            return Err(AcmError::Shape(format!(
+                "labels: {} values do not form (frames, {} cameras, {} markers, 2)",
+                labels.len(),
+                cameras.len(),
+                skeleton.n_markers()
+            )));
+        }
+        if labels.iter().any(|v| v.is_infinite()) {
+            return Err(AcmError::NonFinite(
+                "labels contain infinity (use NaN for unlabelled)".into(),
+            ));
+        }
+        let n_frames = labels.len() / per_frame;
+        let mut n_labels = 0;
+        for (f, frame) in labels.chunks(per_frame).enumerate() {
+            let n = frame
+                .chunks(2)
+                .filter(|p| p[0].is_finite() && p[1].is_finite())
+                .count();
+            if n < 3 {
+                return Err(AcmError::Invalid(format!(
+                    "frame {f} has {n} labelled 2D points in total; at least 3 are needed"
+                )));
+            }
+            n_labels += n;
+        }
+        if let Mode::PosesOnly { lengths, offsets } = &mode {
+            ensure_len(lengths.len(), skeleton.n_bones(), "fixed bone lengths")?;
+            ensure_len(offsets.len(), skeleton.n_markers(), "fixed marker offsets")?;
+        }
+        ensure_len(
+            sym.bone_source().len(),
+            skeleton.n_bones(),
+            "symmetry map bones",
+        )?;
+        ensure_len(
+            sym.marker_source().len(),
+            skeleton.n_markers(),
+            "symmetry map markers",
+        )?;
+        Ok(Self {
+            skeleton,
+            cameras,
+            norm,
+            map,
+            sym,
+            labels,
+            n_frames,
+            n_labels,
+            length_scale,
+            mode,
+        })
+    }
+
+    /// Number of frames.
+    pub fn n_frames(&self) -> usize {
+        self.n_frames
+    }
+    /// Number of labelled 2D points.
+    pub fn n_labels(&self) -> usize {
+        self.n_labels
+    }
+    /// Length of the skeleton part of the parameter vector (0 in [`Mode::PosesOnly`]).
+    pub fn n_skeleton_params(&self) -> usize {
+        match self.mode {
+            Mode::Full => self.sym.n_reduced_bones() + 3 * self.sym.n_reduced_markers(),
+            Mode::PosesOnly { .. } => 0,
+        }
+    }
+    /// Length of the parameter vector.
+    pub fn n_params(&self) -> usize {
+        self.n_skeleton_params() + self.n_frames * self.map.n_state()
+    }
+
+    fn skeleton_from_params(&self, x: &[f64]) -> Result<(Vec<f64>, Vec<Vector3<f64>>)> {
+        match &self.mode {
+            Mode::Full => {
+                let nb = self.sym.n_reduced_bones();
+                let s = self.length_scale;
+                let l_red: Vec<f64> = x[..nb].iter().map(|v| v * s).collect();
+                let v_red: Vec<f64> = x[nb..self.n_skeleton_params()]
+                    .iter()
+                    .map(|v| v * s)
+                    .collect();
+                let lengths = self.sym.expand_lengths(&l_red)?;
+                if let Some(b) = lengths.iter().position(|&l| l <= 0.0) {
+                    return Err(AcmError::Invalid(format!(
+                        "bone {b} has a non-positive length {} (give the optimiser a positive \
+                         lower bound)",
+                        lengths[b]
+                    )));
+                }
+                let offsets = self
+                    .sym
+                    .expand_offsets(&v_red)?
+                    .chunks(3)
+                    .map(|c| Vector3::new(c[0], c[1], c[2]))
+                    .collect();
+                Ok((lengths, offsets))
+            }
+            Mode::PosesOnly { lengths, offsets } => Ok((lengths.clone(), offsets.clone())),
+        }
+    }
+
+    /// Objective value and exact gradient (eq. 9/12), in parallel over frames.
+    ///
+    /// # Errors
+    /// Shape error for a wrong parameter length; non-finite error for NaN/inf parameters;
+    /// invalid error for non-positive bone lengths.
+    pub fn value_grad(&self, x: &[f64]) -> Result<(f64, Vec<f64>)> {
+        ensure_len(x.len(), self.n_params(), "parameter vector")?;
+        ensure_finite(x, "parameter vector")?;
+        let (lengths, offsets) = self.skeleton_from_params(x)?;
+        let ns = self.map.n_state();
+        let nsk = self.n_skeleton_params();
+        let per_frame = self.cameras.len() * self.skeleton.n_markers() * 2;
+        let (nb, nm) = (self.skeleton.n_bones(), self.skeleton.n_markers());
+        let mut grad = vec![0.0; x.len()];
+        let scale = 1.0 / self.n_labels as f64;
+        // Per-frame gradients go straight into their slice; skeleton gradients are reduced.
+        let (value, gl, gv) = grad[nsk..]
+            .par_chunks_mut(ns)
+            .zip(x[nsk..].par_chunks(ns))
+            .zip(self.labels.par_chunks(per_frame))
+            .map(|((gz, z), obs)| {
+                let mut gl = vec![0.0; nb];
+                let mut gv = vec![Vector3::zeros(); nm];
+                let f = self.frame_value_grad(&lengths, &offsets, z, obs, gz, &mut gl, &mut gv);
+                (f, gl, gv)
+            })
+            .reduce(
+                || (0.0, vec![0.0; nb], vec![Vector3::zeros(); nm]),
+                |mut a, b| {
+                    a.0 += b.0;
+                    a.1.iter_mut().zip(&b.1).for_each(|(x, y)| *x += y);
+                    a.2.iter_mut().zip(&b.2).for_each(|(x, y)| *x += y);
+                    a
+                },
+            );
+        for g in grad[nsk..].iter_mut() {
+            *g *= scale;
+        }
+        if let Mode::Full = self.mode {
+            // Chain through Alg. 2-3 (transposed maps) and the length scale.
+            let s = self.length_scale * scale;
+            let gl_red = self.sym.reduce_length_grad(&gl)?;
+            let gv_flat: Vec<f64> = gv.iter().flat_map(|v| [v.x, v.y, v.z]).collect();
+            let gv_red = self.sym.reduce_offset_grad(&gv_flat)?;
+            let nrb = self.sym.n_reduced_bones();
+            for (dst, g) in grad[..nrb].iter_mut().zip(&gl_red) {
+                *dst = g * s;
+            }
+            for (dst, g) in grad[nrb..nsk].iter_mut().zip(&gv_red) {
+                *dst = g * s;
+            }
+        }
+        Ok((value * scale, grad))
+    }
+
+    /// Squared-residual sum of one frame; adds `∂/∂z` into `gz` (unscaled) and the skeleton
+    /// gradients into `gl`, `gv`.
+    #[allow(clippy::too_many_arguments)]
+    fn frame_value_grad(
+        &self,
+        lengths: &[f64],
+        offsets: &[Vector3<f64>],
+        z: &[f64],
+        obs: &[f64],
+        gz: &mut [f64],
+        gl: &mut [f64],
+        gv: &mut [Vector3<f64>],
+    ) -> f64 {
+        let sk = &self.skeleton;
+        let nm = sk.n_markers();
+        let mut pose = vec![0.0; sk.n_pose()];
+        let mut dz = vec![0.0; z.len()];
+        self.map.to_pose_into(z, &mut pose, Some(&mut dz));
+        let t = Vector3::new(pose[0], pose[1], pose[2]);
+        let r: Vec<Vector3<f64>> = pose[3..]
+            .chunks(3)
+            .map(|c| Vector3::new(c[0], c[1], c[2]))
+            .collect();
+        let fk = sk.forward_unchecked(&t, &r, lengths, offsets);
+        let mut value = 0.0;
+        let mut g = vec![Vector3::zeros(); nm];
+        let (c1, c2) = (self.norm.pixel[0], self.norm.pixel[1]);
+        for (ci, cam) in self.cameras.iter().enumerate() {
+            for (k, m) in fk.markers.iter().enumerate() {
+                let o = &obs[(ci * nm + k) * 2..(ci * nm + k) * 2 + 2];
+                if !(o[0].is_finite() && o[1].is_finite()) {
+                    continue;
+                }
+                match cam.project_jacobian(m) {
+                    Some(j) => {
+                        let (ru, rv) = ((j.pixel.x - o[0]) / c1, (j.pixel.y - o[1]) / c2);
+                        value += ru * ru + rv * rv;
+                        let dpx = nalgebra::Vector2::new(2.0 * ru / c1, 2.0 * rv / c2);
+                        g[k] += j.d_point.transpose() * dpx;
+                    }
+                    None => {
+                        // A labelled marker behind a camera: a constant penalty of one
+                        // normalised image (no gradient; the other views pull it back).
+                        value += 4.0;
+                    }
+                }
+            }
+        }
+        let (dp, dl, dv) = sk.markers_vjp(&fk, &r, &g);
+        for (i, &idx) in self.map.free_indices().iter().enumerate() {
+            gz[i] = dp[idx] * dz[i];
+        }
+        for (a, b) in gl.iter_mut().zip(&dl) {
+            *a += b;
+        }
+        for (a, b) in gv.iter_mut().zip(&dv) {
+            *a += b;
+        }
+        value
+    }
+
+    /// Reprojections and the decoded skeleton/poses of a parameter vector.
+    ///
+    /// # Errors
+    /// As [`LearningProblem::value_grad`].
+    pub fn residuals(&self, x: &[f64]) -> Result<Residuals> {
+        ensure_len(x.len(), self.n_params(), "parameter vector")?;
+        ensure_finite(x, "parameter vector")?;
+        let (lengths, offsets) = self.skeleton_from_params(x)?;
+        let ns = self.map.n_state();
+        let nsk = self.n_skeleton_params();
+        let per_frame = self.cameras.len() * self.skeleton.n_markers() * 2;
+        let np = self.skeleton.n_pose();
+        let mut projected = vec![0.0; self.n_frames * per_frame];
+        let mut poses = vec![0.0; self.n_frames * np];
+        projected
+            .par_chunks_mut(per_frame)
+            .zip(poses.par_chunks_mut(np))
+            .zip(x[nsk..].par_chunks(ns))
+            .for_each(|((px, pose), z)| {
+                self.map.to_pose_into(z, pose, None);
+                let t = Vector3::new(pose[0], pose[1], pose[2]);
+                let r: Vec<Vector3<f64>> = pose[3..]
+                    .chunks(3)
+                    .map(|c| Vector3::new(c[0], c[1], c[2]))
+                    .collect();
+                let fk = self.skeleton.forward_unchecked(&t, &r, &lengths, &offsets);
+                let nm = fk.markers.len();
+                for (ci, cam) in self.cameras.iter().enumerate() {
+                    for (k, m) in fk.markers.iter().enumerate() {
+                        let o = &mut px[(ci * nm + k) * 2..(ci * nm + k) * 2 + 2];
+                        let uv = cam.project(m);
+                        o[0] = uv.map_or(f64::NAN, |p| p.x);
+                        o[1] = uv.map_or(f64::NAN, |p| p.y);
+                    }
+                }
+            });
+        Ok(Residuals {
+            projected,
+            lengths,
+            offsets: offsets.iter().flat_map(|v| [v.x, v.y, v.z]).collect(),
+            poses,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::skeleton::tests::branching;
+
+    fn rig() -> Vec<Camera> {
+        let mk = |r: [f64; 3], t: [f64; 3]| {
+            Camera::from_params(&[
+                r[0], r[1], r[2], t[0], t[1], t[2], 900.0, 900.0, 640.0, 512.0, -0.05, 0.01, 0.0,
+                0.0, 0.0,
+            ])
+            .unwrap()
+        };
+        vec![
+            mk([0.0, 0.0, 0.0], [0.0, 0.0, 15.0]),
+            mk([0.0, 1.2, 0.0], [0.3, 0.0, 16.0]),
+            mk([0.9, 0.0, 0.0], [0.0, 0.2, 14.0]),
+        ]
+    }
+
+    fn problem(mode: Mode) -> (LearningProblem, Vec<f64>) {
+        let sk = branching();
+        let cams = rig();
+        let nb = sk.n_bones();
+        let inf = f64::INFINITY;
+        let norm = Normalization::default();
+        let map = StateMap::new(nb, &vec![-inf; 3 * nb], &vec![inf; 3 * nb], &norm, false).unwrap();
+        // bones 1 (1→2) and 3 (1→4) mirror; markers 2 and 3 mirror.
+        let sym = SymmetryMap::new(nb, &[(1, 3)], sk.n_markers(), &[(2, 3)]).unwrap();
+        let n_frames = 3;
+        let nm = sk.n_markers();
+        let mut labels = vec![f64::NAN; n_frames * cams.len() * nm * 2];
+        for (i, v) in labels.iter_mut().enumerate() {
+            if (i / 2) % 5 != 3 {
+                *v = 500.0 + ((i * 37) % 101) as f64;
+            }
+        }
+        let p = LearningProblem::new(sk.clone(), cams, norm, map, sym, labels, 1.0, mode).unwrap();
+        let mut x: Vec<f64> = (0..p.n_params())
+            .map(|i| 0.2 * (((i * 7919) % 13) as f64 / 13.0 - 0.5))
+            .collect();
+        let nsk = p.n_skeleton_params();
+        for v in x[..nsk].iter_mut() {
+            *v += 1.0; // positive lengths
+        }
+        (p, x)
+    }
+
+    #[test]
+    fn gradient_matches_central_differences() {
+        let sk = branching();
+        for mode in [
+            Mode::Full,
+            Mode::PosesOnly {
+                lengths: sk.lengths().to_vec(),
+                offsets: sk.offsets().to_vec(),
+            },
+        ] {
+            let (p, x) = problem(mode);
+            let (_, g) = p.value_grad(&x).unwrap();
+            let h = 1e-6;
+            for i in 0..x.len() {
+                let mut xp = x.clone();
+                let mut xm = x.clone();
+                xp[i] += h;
+                xm[i] -= h;
+                let fd = (p.value_grad(&xp).unwrap().0 - p.value_grad(&xm).unwrap().0) / (2.0 * h);
+                assert!(
+                    (fd - g[i]).abs() < 1e-6 * (1.0 + fd.abs()),
+                    "param {i}: fd {fd} vs {}",
+                    g[i]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn value_is_mean_squared_normalised_residual() {
+        let (p, x) = problem(Mode::Full);
+        let res = p.residuals(&x).unwrap();
+        let norm = Normalization::default();
+        let mut sum = 0.0;
+        let mut n = 0;
+        for (i, (a, b)) in res.projected.iter().zip(&p.labels).enumerate() {
+            if b.is_finite() {
+                let d = (a - b) / norm.pixel[i % 2];
+                sum += d * d;
+                n += 1;
+            }
+        }
+        assert_eq!(n, 2 * p.n_labels());
+        assert!((p.value_grad(&x).unwrap().0 - sum / p.n_labels() as f64).abs() < 1e-12);
+        // Symmetric bones share a length.
+        assert_eq!(res.lengths[1], res.lengths[3]);
+    }
+
+    #[test]
+    fn bad_labels_are_rejected() {
+        let sk = branching();
+        let cams = rig();
+        let nb = sk.n_bones();
+        let norm = Normalization::default();
+        let inf = f64::INFINITY;
+        let map = StateMap::new(nb, &vec![-inf; 3 * nb], &vec![inf; 3 * nb], &norm, false).unwrap();
+        let sym = SymmetryMap::new(nb, &[], sk.n_markers(), &[]).unwrap();
+        let n = cams.len() * sk.n_markers() * 2;
+        let mut labels = vec![f64::NAN; n];
+        labels[0] = 1.0;
+        labels[1] = 2.0;
+        let err = LearningProblem::new(
+            sk.clone(),
+            cams.clone(),
+            norm,
+            map.clone(),
+            sym.clone(),
+            labels,
+            1.0,
+            Mode::Full,
+        )
+        .unwrap_err();
+        assert!(matches!(err, AcmError::Invalid(ref s) if s.contains("frame 0 has 1")));
+        let err = LearningProblem::new(sk, cams, norm, map, sym, vec![0.0; n + 1], 1.0, Mode::Full)
+            .unwrap_err();
+        assert!(matches!(err, AcmError::Shape(_)));
+    }
+}
