@@ -30,8 +30,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import acm_rs
 import numpy as np
+
+import acm_rs
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from numpy_reference import (  # noqa: E402

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import acm_rs
 import numpy as np
 import pytest
+
+import acm_rs
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import acm_rs
 import cv2
 import numpy as np
 import pytest
+
+import acm_rs
 
 
 def cv2_project(cam: acm_rs.Camera, pts: np.ndarray) -> np.ndarray:

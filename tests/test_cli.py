@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import acm_rs
 import numpy as np
 import pytest
+
+import acm_rs
 from acm_rs._io import atomic_write
 from acm_rs.cli import main
 from acm_rs.demo import demo_pose, demo_rig

@@ -10,9 +10,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import acm_rs
 import numpy as np
 import pytest
+
+import acm_rs
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benches"))
 from bench_fk_projection import make_rig, random_poses  # noqa: E402

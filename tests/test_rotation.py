@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import acm_rs
 import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+
+import acm_rs
 
 finite = st.floats(-7.0, 7.0, allow_nan=False)
 

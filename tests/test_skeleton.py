@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import acm_rs
 import numpy as np
 import pytest
+
+import acm_rs
 
 
 def random_pose(rng, sk, n=None, scale=1.0):

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import acm_rs
 import numpy as np
 import pytest
 from scipy.special import erf
+
+import acm_rs
 
 
 def test_rat_has_the_papers_50_free_entries(rat):

@@ -323,9 +323,7 @@ class CameraRig:
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{p}: invalid TOML: {exc}") from None
         tables = {
-            k: v
-            for k, v in doc.items()
-            if isinstance(v, dict) and re.fullmatch(r"cam_\d+", k)
+            k: v for k, v in doc.items() if isinstance(v, dict) and re.fullmatch(r"cam_\d+", k)
         }
         if not tables:
             raise ValueError(f"{p}: no [cam_<i>] tables (not an anipose calibration file)")

@@ -46,6 +46,55 @@ def _cmd_model(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load_model(spec: str):
+    from pathlib import Path
+
+    from . import models
+    from .skeleton import Skeleton
+
+    if spec in models.available():
+        return models.load(spec)
+    if Path(spec).exists():
+        return Skeleton.load(spec)
+    raise ValueError(f"--model {spec!r} is neither a bundled model {models.available()} nor a file")
+
+
+def _cmd_learn(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .camera import CameraRig
+    from .dlc import read_labels
+    from .learning import learn_skeleton
+    from .plotting import save_figure
+
+    rig = CameraRig.load(args.calibration, names=args.camera_names)
+    if len(args.labels) != len(rig):
+        raise ValueError(
+            f"{len(args.labels)} label files for {len(rig)} cameras (give one per camera, in "
+            f"rig order{'' if args.camera_names else '; --camera-names sets the order'})"
+        )
+    skeleton = _load_model(args.model)
+    labels = read_labels(args.labels, individual=args.individual)
+    print(
+        f"acm-rs learn: {skeleton.name} ({skeleton.n_markers} markers), {len(rig)} cameras, "
+        f"{labels.points.shape[1]} labelled frames, {len(labels.bodyparts)} body parts"
+    )
+    res = learn_skeleton(
+        rig, skeleton, labels.points, body_weight=args.body_weight,
+        symmetric=not args.no_symmetry, marker_names=labels.bodyparts, progress=True,
+    )  # fmt: skip
+    out = Path(args.output)
+    files = res.save(out.with_suffix(""))
+    print(res.summary())
+    if args.plots:
+        plots = Path(args.plots)
+        files.append(save_figure(res.plot_reprojection(), plots / "learn_reprojection.png"))
+        files.append(save_figure(res.plot_skeleton(), plots / "learn_skeleton.png"))
+    for f in files:
+        print(f"  wrote {f}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``acm-rs``."""
     p = argparse.ArgumentParser(prog="acm-rs", description=__doc__)
@@ -61,6 +110,21 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--save", help="write the model as a skeleton TOML file")
     m.add_argument("--plot", help="write a PNG of the rest pose")
     m.set_defaults(func=_cmd_model)
+    lp = sub.add_parser(
+        "learn", help="learn bone lengths and marker offsets from labelled frames (sec. 3.2)"
+    )
+    lp.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    lp.add_argument("--camera-names", nargs="+", help="cameras to use, in label-file order")
+    lp.add_argument("--model", default="rat", help="bundled model name or skeleton TOML")
+    lp.add_argument(
+        "--labels", nargs="+", required=True, help="DeepLabCut CollectedData .csv/.h5, per camera"
+    )
+    lp.add_argument("--individual", help="individual to use in multi-animal label files")
+    lp.add_argument("--body-weight", type=float, help="body weight (g) for bone-length priors")
+    lp.add_argument("--no-symmetry", action="store_true", help="do not enforce left/right symmetry")
+    lp.add_argument("-o", "--output", required=True, help="learned skeleton TOML to write")
+    lp.add_argument("--plots", help="folder for the reprojection and skeleton figures")
+    lp.set_defaults(func=_cmd_learn)
     from .gapfill.cli import add_subcommands as add_gapfill
 
     add_gapfill(sub)

@@ -90,7 +90,9 @@ def _labels_in_skeleton_order(
 ) -> np.ndarray:
     lab = as_float_array(labels, "labels", (None, None, None, 2), finite=False)
     if lab.ndim != 4:
-        raise ValueError(f"labels must have shape (n_cams, n_frames, n_markers, 2), got {lab.shape}")
+        raise ValueError(
+            f"labels must have shape (n_cams, n_frames, n_markers, 2), got {lab.shape}"
+        )
     if np.isinf(lab).any():
         raise ValueError("labels contain infinity (use NaN for unlabelled points)")
     if lab.shape[0] != len(rig):
@@ -138,9 +140,9 @@ def triangulate(rig: CameraRig, points_2d: np.ndarray, min_views: int = 2) -> np
         ok = np.all(np.isfinite(flat[c]), axis=1)
         if not ok.any():
             continue
-        und = cv2.undistortPoints(
-            flat[c, ok].reshape(-1, 1, 2), cam.matrix, cam.dist
-        ).reshape(-1, 2)
+        und = cv2.undistortPoints(flat[c, ok].reshape(-1, 1, 2), cam.matrix, cam.dist).reshape(
+            -1, 2
+        )
         proj = np.hstack([cam.rotation_matrix, cam.tvec[:, None]])
         a[ok, 2 * c] = und[:, :1] * proj[2] - proj[0]
         a[ok, 2 * c + 1] = und[:, 1:] * proj[2] - proj[1]
@@ -245,7 +247,9 @@ def _pairs(skeleton: Skeleton, symmetric: bool) -> tuple[np.ndarray, np.ndarray]
     return np.array(bp, np.int64).reshape(-1, 2), np.array(mp, np.int64).reshape(-1, 2)
 
 
-def _pose_bounds(skeleton: Skeleton, norm: Normalization) -> list[tuple[float | None, float | None]]:
+def _pose_bounds(
+    skeleton: Skeleton, norm: Normalization
+) -> list[tuple[float | None, float | None]]:
     lim = skeleton.joint_limits.reshape(-1, 2)
     free = ~skeleton.fixed_pose_mask
     out: list[tuple[float | None, float | None]] = [(None, None)] * 3
@@ -264,10 +268,10 @@ def _to_state(t: np.ndarray, r: np.ndarray, skeleton: Skeleton, norm: Normalizat
     return pose[:, ~skeleton.fixed_pose_mask]
 
 
-def _clip_to_bounds(x: np.ndarray, bounds: Sequence[tuple[float | None, float | None]]) -> np.ndarray:
-    lo = np.array([-np.inf if b[0] is None else b[0] for b in bounds])
-    hi = np.array([np.inf if b[1] is None else b[1] for b in bounds])
-    return np.clip(x, lo, hi)
+def _clip_to_bounds(
+    x: np.ndarray, bounds: Sequence[tuple[float | None, float | None]]
+) -> np.ndarray:
+    return np.clip(x, *_bound_arrays(bounds))
 
 
 class _Progress:
@@ -304,18 +308,42 @@ def _minimize(
     progress: bool,
     desc: str,
 ):
-    def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
-        f, g = problem.value_and_grad(x)
-        return f * scale, g * scale
+    """L-BFGS-B on ``scale * f`` with Jacobi preconditioning.
 
+    The variables are rescaled, ``x = y / d`` with ``d_i`` the square root of the Gauss-Newton
+    Hessian diagonal at ``x0`` (computed exactly in Rust), so that L-BFGS-B starts from a
+    well-conditioned problem; bounds are rescaled with them. The minimiser is unchanged.
+    """
+    diag = problem.gauss_newton_diagonal(x0)
+    d = np.sqrt(2.0 * scale / problem.n_labels * diag)
+    positive = d[d > 0]
+    fill = float(np.median(positive)) if positive.size else 1.0
+    d = np.where(d > 1e-9 * fill, d, fill)
+
+    def fun(y: np.ndarray) -> tuple[float, np.ndarray]:
+        f, g = problem.value_and_grad(y / d)
+        return f * scale, g * (scale / d)
+
+    y_bounds = [
+        (None if lo is None else lo * di, None if hi is None else hi * di)
+        for (lo, hi), di in zip(bounds, d, strict=True)
+    ]
     prog = _Progress(progress, desc, int(options.get("maxiter", 5000)))
     try:
         res = minimize(
-            fun, x0, jac=True, method="L-BFGS-B", bounds=bounds, options=options, callback=prog
-        )
+            fun, x0 * d, jac=True, method="L-BFGS-B", bounds=y_bounds, options=options,
+            callback=prog,
+        )  # fmt: skip
     finally:
         prog.close()
+    res.x = np.clip(res.x / d, *_bound_arrays(bounds))
     return res, prog.values
+
+
+def _bound_arrays(bounds: Sequence[tuple[float | None, float | None]]):
+    lo = np.array([-np.inf if b[0] is None else b[0] for b in bounds])
+    hi = np.array([np.inf if b[1] is None else b[1] for b in bounds])
+    return lo, hi
 
 
 @dataclass
@@ -373,14 +401,17 @@ class LearnedSkeleton:
             f"{int(np.isfinite(self.errors).sum())} labels, RMS reprojection error "
             f"{self.rms:.2f} px",
             "  per camera (px): "
-            + ", ".join(f"{n or i}: {e:.2f}" for i, (n, e) in enumerate(
-                zip(self.rig.names, self.per_camera_error, strict=True))),
+            + ", ".join(
+                f"{n or i}: {e:.2f}"
+                for i, (n, e) in enumerate(zip(self.rig.names, self.per_camera_error, strict=True))
+            ),
         ]
         worst = np.argsort(np.nan_to_num(self.per_marker_error, nan=-1))[::-1][:5]
         lines.append(
             "  worst markers (px): "
-            + ", ".join(f"{self.skeleton.marker_names[k]} {self.per_marker_error[k]:.2f}"
-                        for k in worst)
+            + ", ".join(
+                f"{self.skeleton.marker_names[k]} {self.per_marker_error[k]:.2f}" for k in worst
+            )
         )
         for stage, st in self.info.get("stages", {}).items():
             lines.append(
@@ -388,8 +419,9 @@ class LearnedSkeleton:
             )
         return "\n".join(lines)
 
-    def pose_state(self, frame: int = 0, normalization: Normalization | None = None,
-                   joint_limits: bool = True) -> np.ndarray:
+    def pose_state(
+        self, frame: int = 0, normalization: Normalization | None = None, joint_limits: bool = True
+    ) -> np.ndarray:
         """The tracker state of one learned frame (e.g. ``mu_0``), shape (n_state,)."""
         sm = self.skeleton.state_map(normalization, joint_limits)
         return sm.from_pose(self.t[frame], self.r[frame])
@@ -454,6 +486,7 @@ def learn_skeleton(
     sigma_factor: float = 10.0,
     options: dict | None = None,
     init: tuple[np.ndarray, np.ndarray] | None = None,
+    rounds: int = 4,
 ) -> LearnedSkeleton:
     """Learn bone lengths, marker offsets and per-frame poses from labelled frames (eq. 12).
 
@@ -486,6 +519,9 @@ def learn_skeleton(
     init : (t, r), optional
         Initial poses ``(n_frames, 3)``, ``(n_frames, n_bones, 3)``; default
         :func:`initial_poses`.
+    rounds : int
+        Maximum number of L-BFGS-B runs of the joint problem, each re-preconditioned at the
+        previous result (a run ends at a relative reduction of ``ftol``).
 
     Returns
     -------
@@ -526,16 +562,20 @@ def learn_skeleton(
     z0 = np.stack([_clip_to_bounds(z, pose_bounds) for z in z0])
     info["stages"]["init"] = {"nit": 0, "seconds": time.perf_counter() - t0, "message": "ok"}
 
-    # (2) poses with the generic skeleton fixed
-    poses_only = _native.NativeLearning(
-        skeleton._native, params, lab_fcm, lower, upper, norm._tuple(), bp, mp, length_scale,
-        skeleton.bone_lengths, skeleton.marker_offsets,
-    )  # fmt: skip
+    # (2) poses with the generic skeleton fixed: box-constrained Levenberg-Marquardt per frame
+    # in Rust (frames are independent here), then multi-start for frames left in a poor local
+    # minimum (a limb folded the wrong way): a fast and robust start for the joint problem
     t0 = time.perf_counter()
-    res1, hist1 = _minimize(
-        poses_only, z0.ravel(), pose_bounds * n_frames, scale, opts, progress, "poses"
-    )
-    info["stages"]["poses"] = _stage(res1, t0)
+    lo_z, hi_z = _bound_arrays(pose_bounds)
+    z1, n_lm, n_retried = _fit_frames(
+        skeleton, params, lab_fcm, lower, upper, norm, length_scale, z0, lo_z, hi_z,
+        skeleton.bone_lengths, skeleton.marker_offsets, seed=0,
+    )  # fmt: skip
+    info["stages"]["poses"] = {
+        "success": True, "nit": n_lm, "seconds": time.perf_counter() - t0,
+        "message": f"per-frame Levenberg-Marquardt, {n_retried} frames multi-started",
+    }  # fmt: skip
+    hist1: list[float] = []
 
     # (3) everything together
     full = _native.NativeLearning(
@@ -554,19 +594,31 @@ def learn_skeleton(
         raise ValueError(f"bone-length bounds of {skeleton.bone_names[b]!r} are empty: "
                          f"[{l_lo[b]}, {l_hi[b]}]")  # fmt: skip
     mb = skeleton.marker_bounds
-    x_bounds = [(lo / length_scale, hi / length_scale) for lo, hi in zip(l_lo[rb], l_hi[rb],
-                                                                        strict=True)]
+    x_bounds = [
+        (lo / length_scale, hi / length_scale) for lo, hi in zip(l_lo[rb], l_hi[rb], strict=True)
+    ]
     for k in rm:
         for ax in range(3):
             lo, hi = mb[k, ax]
             x_bounds.append((lo / length_scale if np.isfinite(lo) else None,
                              hi / length_scale if np.isfinite(hi) else None))  # fmt: skip
     x_skel = np.concatenate([generic_l[rb], skeleton.marker_offsets[rm].ravel()]) / length_scale
-    x0 = np.concatenate([_clip_to_bounds(x_skel, x_bounds), res1.x])
+    x0 = np.concatenate([_clip_to_bounds(x_skel, x_bounds), z1.ravel()])
     bounds = x_bounds + pose_bounds * n_frames
     t0 = time.perf_counter()
-    res2, hist2 = _minimize(full, x0, bounds, scale, opts, progress, "skeleton")
-    info["stages"]["skeleton"] = _stage(res2, t0)
+    hist2: list[float] = []
+    nit = 0
+    # L-BFGS-B stops at a relative reduction of ftol; restarting with the preconditioner
+    # recomputed at the new point continues while a round still gains more than 1e-5.
+    for _round in range(max(1, int(rounds))):
+        res2, h = _minimize(full, x0, bounds, scale, opts, progress, "skeleton")
+        hist2 += h
+        nit += int(res2.nit)
+        f_start = full.value_and_grad(x0)[0] * scale
+        x0 = res2.x
+        if f_start - res2.fun <= 1e-5 * max(abs(res2.fun), 1e-12):
+            break
+    info["stages"]["skeleton"] = _stage(res2, t0) | {"nit": nit, "rounds": _round + 1}
     info["history"] = {"poses": hist1, "skeleton": hist2}
 
     projected, lengths, offsets, poses = full.residuals(res2.x)
@@ -584,6 +636,67 @@ def learn_skeleton(
         generic=skeleton,
         info=info,
     )
+
+
+def _frame_rms(problem: _native.NativeLearning, x: np.ndarray, lab_fcm: np.ndarray) -> np.ndarray:
+    projected = problem.residuals(x)[0]
+    err = np.sum((projected - lab_fcm) ** 2, axis=-1)
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.nanmean(np.where(np.isfinite(err), err, np.nan), axis=(1, 2)))
+
+
+def _fit_frames(
+    skeleton: Skeleton,
+    params: np.ndarray,
+    lab_fcm: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    norm: Normalization,
+    length_scale: float,
+    z0: np.ndarray,
+    lo_z: np.ndarray,
+    hi_z: np.ndarray,
+    lengths: np.ndarray,
+    offsets: np.ndarray,
+    seed: int,
+    starts: int = 12,
+) -> tuple[np.ndarray, int, int]:
+    """Per-frame LM fits of the poses (lengths, offsets fixed); frames whose RMS error exceeds
+    1.5x the median are retried from ``starts`` perturbed limb configurations (best kept)."""
+    empty = np.zeros((0, 2), np.int64)
+
+    def problem(labels: np.ndarray) -> _native.NativeLearning:
+        return _native.NativeLearning(
+            skeleton._native, params, np.ascontiguousarray(labels), lower, upper, norm._tuple(),
+            empty, empty, length_scale, lengths, offsets,
+        )  # fmt: skip
+
+    whole = problem(lab_fcm)
+    x, nits = whole.fit_poses_lm(np.ascontiguousarray(z0.ravel()), lo_z, hi_z, 50)
+    z = x.reshape(z0.shape)
+    rms = _frame_rms(whole, x, lab_fcm)
+    bad = np.flatnonzero(rms > 1.5 * np.nanmedian(rms))
+    n_it = int(np.sum(nits))
+    if bad.size == 0:
+        return z, n_it, 0
+    rng = np.random.default_rng(seed)
+    sub = problem(lab_fcm[bad])
+    limited = np.isfinite(lo_z) & np.isfinite(hi_z)
+    lo_f, hi_f = np.where(limited, lo_z, 0.0), np.where(limited, hi_z, 0.0)
+    mid, half = 0.5 * (lo_f + hi_f), 0.5 * (hi_f - lo_f)
+    best, best_rms = z[bad].copy(), rms[bad].copy()
+    for _ in range(starts):
+        trial = z[bad].copy()
+        # keep the translation and global rotation, redraw every limited rotation
+        trial[:, limited] = (mid + half * rng.uniform(-0.9, 0.9, trial.shape))[:, limited]
+        xt, it = sub.fit_poses_lm(np.ascontiguousarray(trial.ravel()), lo_z, hi_z, 50)
+        n_it += int(np.sum(it))
+        zt = xt.reshape(trial.shape)
+        r = _frame_rms(sub, xt, lab_fcm[bad])
+        better = r < best_rms
+        best[better], best_rms[better] = zt[better], r[better]
+    z[bad] = best
+    return z, n_it, int(bad.size)
 
 
 def _stage(res, t0: float) -> dict:
@@ -651,4 +764,3 @@ def fit_pose(
     err = np.linalg.norm(projected[0] - lab4[:, 0], axis=-1)
     info = _stage(res, t0) | {"rms_px": float(np.sqrt(np.nanmean(err**2)))}
     return poses[0, :3], poses[0, 3:].reshape(skeleton.n_bones, 3), info
-

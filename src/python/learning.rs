@@ -90,6 +90,36 @@ impl PyLearning {
         Ok((f, out(py, g, &[n])?))
     }
 
+    /// Per-frame box-constrained Levenberg-Marquardt on the poses (skeleton part of `x`
+    /// fixed) → `(x, iterations per frame)`, with the GIL released.
+    fn fit_poses_lm<'py>(
+        &self,
+        py: Python<'py>,
+        x: Arr<'py>,
+        lower: Arr<'py>,
+        upper: Arr<'py>,
+        max_iter: usize,
+    ) -> PyResult<(Out<'py>, Vec<usize>)> {
+        let xs = view(&x, "x", &[Some(self.inner.n_params())])?;
+        let lo = view(&lower, "lower", &[None])?;
+        let hi = view(&upper, "upper", &[None])?;
+        let (xo, it) = py
+            .detach(|| self.inner.fit_poses_lm(xs, lo, hi, max_iter))
+            .map_err(to_py)?;
+        let n = xo.len();
+        Ok((out(py, xo, &[n])?, it))
+    }
+
+    /// `x` → diagonal of the Gauss-Newton matrix (for preconditioning), with the GIL released.
+    fn gauss_newton_diagonal<'py>(&self, py: Python<'py>, x: Arr<'py>) -> PyResult<Out<'py>> {
+        let xs = view(&x, "x", &[Some(self.inner.n_params())])?;
+        let d = py
+            .detach(|| self.inner.gauss_newton_diagonal(xs))
+            .map_err(to_py)?;
+        let n = d.len();
+        out(py, d, &[n])
+    }
+
     /// `x` → `(projected (F, C, M, 2), lengths (B,), offsets (M, 3), poses (F, 3 + 3B))`.
     fn residuals<'py>(
         &self,
