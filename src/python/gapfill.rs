@@ -1,8 +1,114 @@
 //! pyo3 bindings of the gap-filling core (`crate::gapfill`).
 
+use super::error::to_py;
+use crate::gapfill::{self, Combine, Criterion, Method, Options};
+
+use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+type Out<'py> = Bound<'py, PyArrayDyn<f64>>;
+
+fn out<'py>(py: Python<'py>, data: Vec<f64>, shape: &[usize]) -> PyResult<Out<'py>> {
+    PyArray1::from_vec(py, data).reshape(shape.to_vec())
+}
+
+/// Fills a `(T, D)` float64 C-contiguous array (NaN = missing) with the given method.
+/// Returns `(filled (T, D), std (T, D) or None, info dict)`; the heavy work runs with the GIL
+/// released.
+#[pyfunction]
+#[pyo3(signature = (x, method, gamma, criterion, dim, r, em_iters, paper_q, subspace_iters,
+    min_complete, combine, short_gap, keep_original, want_std, memo_tol, seed))]
+#[allow(clippy::too_many_arguments)]
+fn gapfill_fill<'py>(
+    py: Python<'py>,
+    x: PyReadonlyArrayDyn<'py, f64>,
+    method: &str,
+    gamma: f64,
+    criterion: &str,
+    dim: Option<usize>,
+    r: Option<f64>,
+    em_iters: usize,
+    paper_q: bool,
+    subspace_iters: usize,
+    min_complete: usize,
+    combine: &str,
+    short_gap: Option<usize>,
+    keep_original: bool,
+    want_std: bool,
+    memo_tol: f64,
+    seed: u64,
+) -> PyResult<(Out<'py>, Option<Out<'py>>, Bound<'py, PyDict>)> {
+    let shape = x.shape().to_vec();
+    if shape.len() != 2 {
+        return Err(PyValueError::new_err(format!(
+            "x must have shape (n_frames, n_coords), got {shape:?}"
+        )));
+    }
+    let (t, d) = (shape[0], shape[1]);
+    let data = x
+        .as_slice()
+        .map_err(|_| PyValueError::new_err("x must be C-contiguous"))?;
+    let method = Method::parse(method).map_err(to_py)?;
+    let criterion = match criterion {
+        "energy" => Criterion::Energy,
+        "singular-values" | "paper" => Criterion::SingularValues,
+        _ => {
+            return Err(PyValueError::new_err(format!(
+                "criterion must be 'energy' or 'singular-values', got {criterion:?}"
+            )))
+        }
+    };
+    let combine = match combine {
+        "none" => Combine::None,
+        "residual" => Combine::Residual,
+        "auto" => Combine::Auto,
+        _ => {
+            return Err(PyValueError::new_err(format!(
+                "combine must be 'none', 'residual' or 'auto', got {combine:?}"
+            )))
+        }
+    };
+    let opts = Options {
+        method,
+        gamma,
+        criterion,
+        dim,
+        r,
+        em_iters,
+        paper_q,
+        subspace_iters,
+        min_complete,
+        combine,
+        short_gap,
+        keep_original,
+        want_std,
+        memo_tol,
+        seed,
+    };
+    let res = py
+        .detach(|| gapfill::fill(data, t, d, &opts))
+        .map_err(to_py)?;
+    let info = PyDict::new(py);
+    info.set_item("dim", res.info.dim)?;
+    info.set_item("r", res.info.r)?;
+    info.set_item("q_trace", res.info.q_trace)?;
+    info.set_item("complete_frames", res.info.complete_frames)?;
+    info.set_item("iterated_subspace", res.info.iterated_subspace)?;
+    info.set_item("distinct_covariances", res.info.distinct_covariances)?;
+    info.set_item("short_gap", res.info.short_gap)?;
+    info.set_item("em_iters", res.info.em_iters)?;
+    let filled = out(py, res.x, &[t, d])?;
+    let std = match res.std {
+        Some(s) => Some(out(py, s, &[t, d])?),
+        None => None,
+    };
+    Ok((filled, std, info))
+}
 
 /// Adds the gap-filling functions to the native module.
-pub fn register(_m: &Bound<'_, PyModule>) -> PyResult<()> {
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(gapfill_fill, m)?)?;
     Ok(())
 }

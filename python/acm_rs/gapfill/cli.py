@@ -3,7 +3,100 @@
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from . import METHODS
+
+
+def _cmd_gapfill(args: argparse.Namespace) -> int:
+    from . import fill
+    from .io import read, write_like
+
+    src = Path(args.input)
+    out = Path(args.output)
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"{out} exists; pass --overwrite to replace it")
+    m = read(src)
+    opts = {}
+    if args.gamma is not None:
+        opts["gamma"] = args.gamma
+    if args.combine is not None:
+        opts["combine"] = args.combine
+    res = fill(m.xyz, method=args.method, full_output=True, empty="skip", **opts)
+    write_like(out, m, res.filled)
+    n_missing = int(np.isnan(m.xyz[:, :, 0]).sum())
+    n_filled = int(res.imputed[:, :, 0].sum())
+    print(
+        f"acm-rs gapfill: {src} ({m.xyz.shape[0]} frames, {m.xyz.shape[1]} markers, "
+        f"{n_missing} missing marker-frames) -> {out}: filled {n_filled} with {args.method}"
+    )
+    if len(res.info.get("skipped_markers", [])):
+        names = [m.labels[i] for i in res.info["skipped_markers"]]
+        print(f"  left missing (never observed): {', '.join(names)}")
+    if args.std:
+        from .io import write_like as _w
+
+        std = res.std if res.std is not None else np.zeros_like(res.filled)
+        _w(Path(args.std), m, std)
+        print(f"  wrote posterior standard deviations to {args.std}")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate
+    from .io import read
+
+    m = read(args.input)
+    X = m.xyz
+    if not np.isfinite(X).all():
+        raise ValueError(f"{args.input} has missing values; the protocol needs a complete file")
+    if args.max_frames:
+        X = X[: args.max_frames]
+    rate = args.rate or m.rate
+    if not rate:
+        raise ValueError("the frame rate is unknown; pass --rate")
+    methods = args.methods.split(",") if args.methods else list(METHODS)
+    bad = [x for x in methods if x not in METHODS]
+    if bad:
+        raise ValueError(f"unknown method(s) {bad}; expected {', '.join(METHODS)}")
+    res = evaluate(X, rate, methods=methods, repeats=args.repeats, seed=args.seed)
+    print(
+        f"acm-rs gapfill-eval: {args.input}, {X.shape[0]} frames, {X.shape[1]} markers, "
+        f"{args.repeats} repetitions, {res.gap_frames.size} removed marker-frames"
+    )
+    print(res.table())
+    for meth, msg in res.failures.items():
+        print(f"  {meth} failed: {msg}")
+    out = Path(args.out)
+    res.save_json(out / "gapfill_eval.json")
+    res.plot(out / "gapfill_error_vs_length.png")
+    print(f"  wrote {out / 'gapfill_eval.json'} and {out / 'gapfill_error_vs_length.png'}")
+    if args.print_json:
+        print(json.dumps(res.summary(), indent=1))
+    return 0
 
 
 def add_subcommands(sub: argparse._SubParsersAction) -> None:
     """Register the gap-filling subcommands on the ``acm-rs`` parser."""
+    g = sub.add_parser("gapfill", help="fill marker gaps in a C3D, TRC or CSV file")
+    g.add_argument("input", help="input .c3d, .trc or .csv")
+    g.add_argument("-o", "--output", required=True, help="output file (format from suffix)")
+    g.add_argument("--method", default="lowdim", choices=METHODS)
+    g.add_argument("--gamma", type=float, help="subspace energy fraction (lowdim)")
+    g.add_argument("--combine", choices=("none", "residual", "auto"))
+    g.add_argument("--std", help="also write posterior standard deviations to this file")
+    g.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    g.set_defaults(func=_cmd_gapfill)
+    e = sub.add_parser("gapfill-eval", help="score gap-filling methods on a complete sequence")
+    e.add_argument("input", help="complete .c3d, .trc or .csv")
+    e.add_argument("--out", default="gapfill_eval", help="output folder")
+    e.add_argument("--methods", help=f"comma-separated subset of {','.join(METHODS)}")
+    e.add_argument("--repeats", type=int, default=3)
+    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--rate", type=float, help="frame rate (Hz) if the file has none")
+    e.add_argument("--max-frames", type=int, help="use only the first N frames")
+    e.add_argument("--print-json", action="store_true")
+    e.set_defaults(func=_cmd_eval)

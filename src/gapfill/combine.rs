@@ -1,0 +1,314 @@
+//! The low-dimensional method end to end: subspace (from complete frames, or iterated from
+//! imputed frames), noise learning, smoothing, back-projection, border-residual correction and
+//! the automatic spline / smoother combination.
+
+use super::smoother::{self, Model, Patterns};
+use super::subspace::{self, Subspace};
+use super::{baselines, gaps_of, Combine, Filled, Info, Method, Options, Seq};
+use crate::error::{AcmError, Result};
+use nalgebra::{DMatrix, DVector};
+use rayon::prelude::*;
+
+/// Fills `seq` with [`Method::LowDim`] or [`Method::LowDimPaper`].
+pub fn fill_lowdim(seq: &Seq<'_>, opts: &Options) -> Result<Filled> {
+    let (d, t) = (seq.d, seq.t);
+    let complete = seq.complete_frames();
+    let paper = opts.method == Method::LowDimPaper;
+    let min_complete = if opts.min_complete == 0 {
+        d.max(10)
+    } else {
+        opts.min_complete
+    };
+    let mut info = Info {
+        complete_frames: complete.len(),
+        ..Info::default()
+    };
+    let (mut y, std) = if paper || complete.len() >= min_complete {
+        if complete.len() < 2 {
+            return Err(AcmError::Invalid(format!(
+                "the published method learns its subspace from complete frames and found {} \
+                 (needs >= 2); use method 'lowdim', which imputes and iterates",
+                complete.len()
+            )));
+        }
+        let sub = subspace::fit(seq.x, d, &complete, opts.criterion, opts.gamma, opts.dim)?;
+        let q = if paper || opts.paper_q {
+            subspace::q_paper(seq.x, d, &complete, &sub)
+        } else {
+            let pairs: Vec<(usize, usize)> = complete
+                .windows(2)
+                .filter(|w| w[1] == w[0] + 1)
+                .map(|w| (w[0], w[1]))
+                .collect();
+            if pairs.is_empty() {
+                // No consecutive complete frames: estimate Q on an interpolated copy.
+                let lin = baselines::linear(seq);
+                let all: Vec<(usize, usize)> = (1..t).map(|i| (i - 1, i)).collect();
+                subspace::q_from_pairs(&lin, d, &all, &sub)
+            } else {
+                subspace::q_from_pairs(seq.x, d, &pairs, &sub)
+            }
+        };
+        run(seq, &sub, q, opts, paper, &mut info)?
+    } else {
+        // Beyond the paper (a): too few complete frames. Impute (linear interpolation), learn
+        // the subspace from all frames, smooth, and repeat with the smoothed fill.
+        info.iterated_subspace = true;
+        let mut cur = baselines::linear(seq);
+        let all_rows: Vec<usize> = (0..t).collect();
+        let all_pairs: Vec<(usize, usize)> = (1..t).map(|i| (i - 1, i)).collect();
+        let rounds = opts.subspace_iters.max(1);
+        let mut last = None;
+        for round in 0..rounds {
+            let sub = subspace::fit(&cur, d, &all_rows, opts.criterion, opts.gamma, opts.dim)?;
+            let q = subspace::q_from_pairs(&cur, d, &all_pairs, &sub);
+            let mut o = opts.clone();
+            o.want_std = opts.want_std && round + 1 == rounds;
+            let (yy, ss) = run(seq, &sub, q, &o, false, &mut info)?;
+            cur = yy.clone();
+            for (c, v) in cur.iter_mut().zip(seq.x) {
+                if !v.is_nan() {
+                    *c = *v;
+                }
+            }
+            last = Some((yy, ss));
+        }
+        last.expect("at least one round")
+    };
+    match opts.combine {
+        Combine::None => {}
+        Combine::Residual => carry_residuals(seq, &mut y),
+        Combine::Auto => {
+            carry_residuals(seq, &mut y);
+            let l = match opts.short_gap {
+                Some(l) => l,
+                None => calibrate_short_gap(seq, opts)?,
+            };
+            info.short_gap = l;
+            if l > 0 {
+                let sp = baselines::spline(seq);
+                splice_short_gaps(seq, &mut y, &sp, l);
+            }
+        }
+    }
+    Ok(Filled { x: y, std, info })
+}
+
+/// Builds the model, learns the noise (EM) and smooths: returns the back-projection and,
+/// if requested, the predictive standard deviations.
+fn run(
+    seq: &Seq<'_>,
+    sub: &Subspace,
+    q: DMatrix<f64>,
+    opts: &Options,
+    paper: bool,
+    info: &mut Info,
+) -> Result<(Vec<f64>, Option<Vec<f64>>)> {
+    let k = sub.dim();
+    let r0 = opts.r.unwrap_or_else(|| {
+        if paper {
+            1e-3
+        } else {
+            sub.residual_variance().max(1e-6)
+        }
+    });
+    let p0 = if paper {
+        // The authors' code: 1e12·I (Algorithm 1 prints randn(d, d), not a covariance).
+        DMatrix::identity(k, k) * 1e12
+    } else {
+        // The prior of the subspace coordinates: their training covariance.
+        DMatrix::from_diagonal(&DVector::from_iterator(
+            k,
+            sub.eigvals[..k].iter().map(|v| v.max(1e-9)),
+        ))
+    };
+    let mut model = Model {
+        v: sub.rows(),
+        mean: sub.mean.clone(),
+        q,
+        r: r0,
+        m0: DVector::zeros(k),
+        p0,
+    };
+    if !paper && opts.em_iters > 0 {
+        // EM on a centred block of at most EM_FRAMES frames: the noise parameters are global,
+        // a few thousand frames determine them, and long sequences stay fast.
+        let (a, b) = em_block(seq.t);
+        let block = &seq.x[a * seq.d..b * seq.d];
+        let bp = Patterns::new(block, seq.d, &model);
+        info.em_iters = smoother::em(
+            block,
+            &mut model,
+            &bp,
+            opts.em_iters,
+            opts.r.is_none(),
+            opts.memo_tol,
+        )?;
+    }
+    let pats = Patterns::new(seq.x, seq.d, &model);
+    let sm = smoother::smooth(seq.x, &model, &pats, opts.want_std, opts.memo_tol)?;
+    info.dim = k;
+    info.r = model.r;
+    info.q_trace = model.q.trace();
+    info.distinct_covariances = sm.distinct_filter_covariances();
+    let y = smoother::back_project(&sm, &model);
+    let std = opts
+        .want_std
+        .then(|| smoother::missing_std(seq.x, &sm, &model));
+    Ok((y, std))
+}
+
+/// Frames used by EM at most.
+pub const EM_FRAMES: usize = 2000;
+
+fn em_block(t: usize) -> (usize, usize) {
+    if t <= EM_FRAMES {
+        (0, t)
+    } else {
+        let a = (t - EM_FRAMES) / 2;
+        (a, a + EM_FRAMES)
+    }
+}
+
+/// Beyond the paper (c): adds to every gap the observed-minus-smoothed residual of its border
+/// frames, blended linearly across the gap (one side only at the ends of the sequence), so the
+/// fill joins the observed trajectory without a jump.
+pub fn carry_residuals(seq: &Seq<'_>, y: &mut [f64]) {
+    let d = seq.d;
+    let cols: Vec<Vec<(usize, f64)>> = (0..d)
+        .into_par_iter()
+        .map(|j| {
+            let mut out = Vec::new();
+            for (a, b) in gaps_of(seq, j) {
+                let left = (a > 0).then(|| seq.at(a - 1, j) - y[(a - 1) * d + j]);
+                let right = (b < seq.t).then(|| seq.at(b, j) - y[b * d + j]);
+                for i in a..b {
+                    let e = match (left, right) {
+                        (Some(l), Some(r)) => {
+                            let w = (i + 1 - a) as f64 / (b + 1 - a) as f64;
+                            (1.0 - w) * l + w * r
+                        }
+                        (Some(l), None) => l,
+                        (None, Some(r)) => r,
+                        (None, None) => 0.0,
+                    };
+                    out.push((i, e));
+                }
+            }
+            out
+        })
+        .collect();
+    for (j, col) in cols.into_iter().enumerate() {
+        for (i, e) in col {
+            y[i * d + j] += e;
+        }
+    }
+}
+
+/// Replaces the fill of every gap of at most `max_len` frames (bounded on both sides) by the
+/// spline fill `sp`.
+fn splice_short_gaps(seq: &Seq<'_>, y: &mut [f64], sp: &[f64], max_len: usize) {
+    let d = seq.d;
+    for j in 0..d {
+        for (a, b) in gaps_of(seq, j) {
+            if b - a <= max_len && a > 0 && b < seq.t {
+                for i in a..b {
+                    y[i * d + j] = sp[i * d + j];
+                }
+            }
+        }
+    }
+}
+
+/// A small deterministic generator (SplitMix64) for the calibration gaps.
+pub struct SplitMix(pub u64);
+
+impl SplitMix {
+    /// Next 64 random bits.
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform integer in `0..n` (`n > 0`).
+    pub fn below(&mut self, n: usize) -> usize {
+        (self.next_u64() % n as u64) as usize
+    }
+}
+
+/// Calibrates the spline/smoother threshold on the data itself: hides extra marker gaps of
+/// lengths 1, 2, 3, 5, 8, 12, 20, 30, 50, 80 frames where the marker is observed, fills them with
+/// the spline and with the smoother, and returns the largest length up to which the spline's
+/// mean error is the smaller one (0 if the smoother wins already at length 1).
+pub fn calibrate_short_gap(seq: &Seq<'_>, opts: &Options) -> Result<usize> {
+    let (t, d) = (seq.t, seq.d);
+    let n_markers = d / 3;
+    if n_markers == 0 || d % 3 != 0 {
+        return Ok(0);
+    }
+    let lengths: Vec<usize> = [1usize, 2, 3, 5, 8, 12, 20, 30, 50, 80]
+        .into_iter()
+        .filter(|&l| l + 2 <= t / 4)
+        .collect();
+    let mut x = seq.x.to_vec();
+    let mut rng = SplitMix(opts.seed ^ 0x5EED_CA11);
+    let mut hidden: Vec<(usize, usize, usize)> = Vec::new(); // (marker, start, len)
+    for &l in &lengths {
+        let mut placed = 0;
+        for _ in 0..400 {
+            if placed >= 12 {
+                break;
+            }
+            let m = rng.below(n_markers);
+            let s = 1 + rng.below(t - l - 1);
+            let ok = (s - 1..s + l + 1).all(|i| (0..3).all(|c| !x[i * d + 3 * m + c].is_nan()));
+            if ok {
+                for i in s..s + l {
+                    for c in 0..3 {
+                        x[i * d + 3 * m + c] = f64::NAN;
+                    }
+                }
+                hidden.push((m, s, l));
+                placed += 1;
+            }
+        }
+    }
+    if hidden.is_empty() {
+        return Ok(0);
+    }
+    let probe = Seq::new(&x, t, d)?;
+    let mut o = opts.clone();
+    o.combine = Combine::Residual;
+    o.want_std = false;
+    let lowdim = fill_lowdim(&probe, &o)?.x;
+    let sp = baselines::spline(&probe);
+    let err = |f: &[f64], m: usize, s: usize, l: usize| -> f64 {
+        (s..s + l)
+            .map(|i| {
+                (0..3)
+                    .map(|c| {
+                        let e = f[i * d + 3 * m + c] - seq.x[i * d + 3 * m + c];
+                        e * e
+                    })
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .sum::<f64>()
+    };
+    let mut best = 0;
+    for &l in &lengths {
+        let (mut es, mut el) = (0.0, 0.0);
+        for &(m, s, ll) in hidden.iter().filter(|h| h.2 == l) {
+            es += err(&sp, m, s, ll);
+            el += err(&lowdim, m, s, ll);
+        }
+        if es < el {
+            best = l;
+        } else {
+            break;
+        }
+    }
+    Ok(best)
+}

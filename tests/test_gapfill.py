@@ -1,0 +1,274 @@
+"""Gap filling: known answers, the NumPy reference of Burke & Lasenby Alg. 1, ground-truth
+recovery on a seeded synthetic sequence, I/O round trips, CLI, and bad input."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acm_rs.gapfill import METHODS, FillResult, fill
+from acm_rs.gapfill.evaluate import evaluate, insert_gaps, run_lengths
+from acm_rs.gapfill.io import read, read_c3d, read_csv, read_trc, write, write_like
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+MOCAP = SHARED / "data" / "mocap"
+sys.path.insert(0, str(ROOT / "benches"))
+from gapfill_numpy_reference import lowdim_paper  # noqa: E402
+
+
+def synthetic(n_frames: int = 400, n_markers: int = 12, seed: int = 0) -> np.ndarray:
+    """Rigid-ish multi-segment motion: markers are fixed combinations of 4 smooth latent
+    trajectories (a low-dimensional sequence, mm), plus 0.1 mm noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n_frames) / 100.0
+    latent = np.stack(
+        [
+            np.sin(2 * np.pi * f * t + p)
+            for f, p in zip([0.5, 0.8, 1.3, 0.3], rng.uniform(0, 6, 4), strict=True)
+        ],
+        axis=1,
+    )
+    mix = rng.normal(0, 100, (4, n_markers * 3))
+    offset = rng.uniform(-500, 500, n_markers * 3)
+    X = latent @ mix + offset + rng.normal(0, 0.1, (n_frames, n_markers * 3))
+    return X.reshape(n_frames, n_markers, 3)
+
+
+@pytest.fixture(scope="module")
+def seq() -> np.ndarray:
+    return synthetic()
+
+
+def gapped(X: np.ndarray, seed: int = 1) -> np.ndarray:
+    G = X.copy()
+    rng = np.random.default_rng(seed)
+    for _ in range(25):
+        m = rng.integers(X.shape[1])
+        L = int(rng.integers(1, 40))
+        s = int(rng.integers(1, X.shape[0] - L - 1))
+        G[s : s + L, m] = np.nan
+    return G
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_method_fills_and_keeps_observed(seq, method):
+    G = gapped(seq)
+    F = fill(G, method=method)
+    assert F.shape == G.shape and np.isfinite(F).all()
+    obs = ~np.isnan(G)
+    np.testing.assert_array_equal(F[obs], G[obs])
+
+
+def test_lowdim_recovers_low_rank_ground_truth(seq):
+    G = gapped(seq)
+    miss = np.isnan(G[:, :, 0])
+    err = np.linalg.norm(fill(G) - seq, axis=2)[miss]
+    err_lin = np.linalg.norm(fill(G, method="linear") - seq, axis=2)[miss]
+    assert np.median(err) < 2.0  # mm, data spans ~±300 mm
+    assert err.mean() < 0.25 * err_lin.mean()
+
+
+def test_linear_and_spline_known_answers():
+    t = np.arange(20.0)
+    X = np.stack([np.stack([t, t**2, t**3], axis=1)] * 2, axis=1)
+    G = X.copy()
+    G[5:9, 0] = np.nan
+    np.testing.assert_allclose(fill(G, method="linear")[5:9, 0, 0], t[5:9])
+    # a natural spline reproduces lines exactly and quadratics closely inside
+    F = fill(G, method="spline")
+    np.testing.assert_allclose(F[5:9, 0, 0], t[5:9], atol=1e-9)
+    np.testing.assert_allclose(F[5:9, 0, 1], t[5:9] ** 2, rtol=2e-2)
+    # rw smoother with tiny R is the Brownian-bridge mean: linear interpolation
+    np.testing.assert_allclose(fill(G, method="rw")[5:9, 0, 0], t[5:9], atol=1e-6)
+    # cv smoother follows a line exactly
+    np.testing.assert_allclose(fill(G, method="cv")[5:9, 0, 0], t[5:9], atol=1e-4)
+
+
+def test_paper_method_equals_numpy_reference(seq):
+    G = gapped(seq, seed=3)
+    T = G.shape[0]
+    ref = lowdim_paper(G.reshape(T, -1)).reshape(G.shape)
+    ours = fill(G, method="lowdim-paper", memo_tol=0.0)
+    # Equal after the first frames; there the reference's covariance form loses precision with
+    # P0 = 1e12 I ((I - K H) P cancels), the information form does not.
+    np.testing.assert_allclose(ours[10:], ref[10:], atol=1e-5)
+    miss = np.isnan(G[:10, :, 0])
+    e_ours = np.linalg.norm(ours[:10] - seq[:10], axis=2)[miss]
+    e_ref = np.linalg.norm(ref[:10] - seq[:10], axis=2)[miss]
+    assert e_ours.max() <= e_ref.max() + 1e-6
+
+
+def test_printed_gain_is_worse_than_rts_gain(seq):
+    G = gapped(seq, seed=4)
+    T = G.shape[0]
+    miss = np.isnan(G[:, :, 0])
+    a = lowdim_paper(G.reshape(T, -1)).reshape(G.shape)
+    b = lowdim_paper(G.reshape(T, -1), printed_gain=True).reshape(G.shape)
+    ea = np.linalg.norm(a - seq, axis=2)[miss].mean()
+    eb = np.linalg.norm(b - seq, axis=2)[miss].mean()
+    assert ea <= eb + 1e-9
+
+
+def test_full_output_std_and_mask(seq):
+    G = gapped(seq)
+    res = fill(G, full_output=True)
+    assert isinstance(res, FillResult)
+    np.testing.assert_array_equal(res.imputed, np.isnan(G))
+    assert res.std is not None
+    assert (res.std[~res.imputed] == 0).all() and (res.std[res.imputed] > 0).all()
+    # calibration: most errors lie within 3 predicted standard deviations
+    z = np.abs(res.filled - seq)[res.imputed] / res.std[res.imputed]
+    assert np.mean(z < 3) > 0.8
+    assert res.info["dim"] >= 1 and res.info["r"] > 0
+
+
+def test_no_complete_frames_and_all_missing_frames(seq):
+    G = gapped(seq)
+    G[::2, 0] = np.nan  # markers 0 and 1 missing in alternate frames: no complete frame left
+    G[1::2, 1] = np.nan
+    G[100:103] = np.nan  # every marker missing in three frames
+    assert not (~np.isnan(G).any(axis=(1, 2))).any()
+    res = fill(G, full_output=True)
+    assert np.isfinite(res.filled).all() and res.info["iterated_subspace"]
+    err = np.linalg.norm(res.filled - seq, axis=2)[np.isnan(G[:, :, 0])]
+    assert np.median(err) < 5.0
+    with pytest.raises(ValueError, match="complete frames"):
+        fill(G, method="lowdim-paper")
+
+
+def test_fewer_frames_than_markers():
+    X = synthetic(n_frames=8, n_markers=12)
+    G = X.copy()
+    G[3:5, 2] = np.nan
+    for method in METHODS:
+        if method == "lowdim-paper":
+            continue
+        assert np.isfinite(fill(G, method=method)).all()
+
+
+@pytest.mark.parametrize(
+    ("bad", "match"),
+    [
+        (np.zeros((10, 4)), "shape"),
+        (np.zeros((10, 4, 2)), "shape"),
+        (np.zeros((1, 4, 3)), "at least 2 frames"),
+        (np.full((10, 4, 3), np.inf), "infinity"),
+        (np.full((10, 4, 3), np.nan), "every marker"),
+        ("abc", "numeric"),
+    ],
+)
+def test_bad_input(bad, match):
+    with pytest.raises(ValueError, match=match):
+        fill(bad)
+
+
+def test_all_nan_marker_error_or_skip(seq):
+    G = gapped(seq)
+    G[:, 3] = np.nan
+    with pytest.raises(ValueError, match=r"marker\(s\) \[3\]"):
+        fill(G)
+    res = fill(G, empty="skip", full_output=True)
+    assert np.isnan(res.filled[:, 3]).all() and not res.imputed[:, 3].any()
+    others = np.delete(res.filled, 3, axis=1)
+    assert np.isfinite(others).all()
+
+
+def test_bad_options(seq):
+    with pytest.raises(ValueError, match="unknown method"):
+        fill(seq, method="magic")
+    with pytest.raises(ValueError, match="unknown option"):
+        fill(seq, sigma=3)
+    with pytest.raises(ValueError, match="gamma"):
+        fill(gapped(seq), gamma=1.5)
+    with pytest.raises(ValueError, match="combine"):
+        fill(gapped(seq), combine="best")
+
+
+def test_no_gaps_is_identity(seq):
+    np.testing.assert_array_equal(fill(seq), seq)
+
+
+def test_evaluation_protocol(seq, tmp_path):
+    G = insert_gaps(seq, 100.0, np.random.default_rng(0))
+    assert np.isnan(G).any() and (np.isnan(G[:, :, 0]).sum(axis=0) <= seq.shape[0] - 2).all()
+    lengths = run_lengths(np.array([[1, 0], [1, 1], [0, 1], [1, 1]], dtype=bool))
+    np.testing.assert_array_equal(lengths, [[2, 0], [2, 3], [0, 3], [1, 3]])
+    res = evaluate(seq, 100.0, methods=["lowdim", "spline"], repeats=2, seed=0)
+    s = res.summary()
+    assert set(s) == {"lowdim", "spline"} and all(v["max"] >= v["median"] for v in s.values())
+    res.save_json(tmp_path / "e.json")
+    res.plot(tmp_path / "e.png")
+    assert (tmp_path / "e.png").stat().st_size > 1000
+    assert "| lowdim |" in res.table()
+
+
+def test_trc_csv_round_trip(seq, tmp_path):
+    G = gapped(seq)
+    labels = [f"m{i}" for i in range(G.shape[1])]
+    for ext in ("trc", "csv"):
+        p = tmp_path / f"a.{ext}"
+        write(p, G, labels, 100.0)
+        m = read(p)
+        np.testing.assert_allclose(m.xyz, G, equal_nan=True)
+        if ext == "trc":
+            assert m.labels == labels and m.rate == 100.0
+
+
+def test_c3d_round_trip_and_corrupt(seq, tmp_path):
+    pytest.importorskip("ezc3d")
+    G = gapped(seq)
+    labels = [f"m{i}" for i in range(G.shape[1])]
+    p = tmp_path / "a.c3d"
+    write(p, G, labels, 100.0)
+    m = read_c3d(p)
+    assert m.labels == labels and m.rate == 100.0
+    np.testing.assert_allclose(m.xyz, G, equal_nan=True, atol=1e-3)
+    bad = tmp_path / "bad.c3d"
+    bad.write_bytes(b"not a c3d file" * 10)
+    with pytest.raises(ValueError, match="C3D"):
+        read_c3d(bad)
+    with pytest.raises(ValueError):
+        read_trc(bad)
+    (tmp_path / "r.csv").write_text("1,2\n3,4\n")
+    with pytest.raises(ValueError, match="multiple of 3"):
+        read_csv(tmp_path / "r.csv")
+
+
+def test_cli_gapfill(seq, tmp_path):
+    from acm_rs.cli import main
+
+    G = gapped(seq)
+    src = tmp_path / "in.trc"
+    write(src, G, [f"m{i}" for i in range(G.shape[1])], 100.0)
+    out = tmp_path / "out.trc"
+    assert main(["gapfill", str(src), "-o", str(out), "--method", "spline"]) == 0
+    assert np.isfinite(read(out).xyz).all()
+    assert main(["gapfill", str(src), "-o", str(out)]) == 1  # exists, no --overwrite
+
+
+@pytest.mark.skipif(not MOCAP.is_dir(), reason="../shared data not available")
+def test_real_c3d_copy_preserves_metadata(tmp_path):
+    src = MOCAP / "85_02.c3d"
+    m = read_c3d(src)
+    G = insert_gaps(m.xyz, m.rate, np.random.default_rng(0))
+    res = fill(G)
+    out = tmp_path / "filled.c3d"
+    write_like(out, m, res)
+    back = read_c3d(out)
+    assert back.labels == m.labels and back.rate == m.rate and back.units == m.units
+    miss = np.isnan(G[:, :, 0])
+    err = np.linalg.norm(back.xyz - m.xyz, axis=2)[miss]
+    err_lin = np.linalg.norm(fill(G, method="linear") - m.xyz, axis=2)[miss]
+    assert np.median(err) < np.median(err_lin)
+
+
+@pytest.mark.skipif(not MOCAP.is_dir(), reason="../shared data not available")
+def test_real_gaps_csv():
+    m = read_csv(MOCAP / "gait-raw.csv")
+    assert np.isnan(m.xyz).any()
+    res = fill(m.xyz, full_output=True)
+    assert np.isfinite(res.filled).all() and res.imputed.any()
