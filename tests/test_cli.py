@@ -12,10 +12,19 @@ from acm_rs.demo import demo_pose, demo_rig
 
 
 def test_demo_writes_pictures_and_consistent_projections(tmp_path, capsys):
-    assert main(["demo", "--out", str(tmp_path), "--frames", "2000"]) == 0
+    argv = ["demo", "--out", str(tmp_path), "--frames", "2000", "--learn-frames", "30"]
+    assert main(argv) == 0
     out = capsys.readouterr().out
-    assert "2,000 poses" in out
-    for name in ("rat_model.png", "camera_views.png"):
+    assert "2,000 poses" in out and "skeleton learning from 30 labelled frames" in out
+    learned = acm_rs.Skeleton.load(tmp_path / "learned_rat.toml")
+    assert learned.n_bones == 28
+    assert acm_rs.CameraRig.load(tmp_path / "calibration.toml").names == demo_rig().names
+    for name in (
+        "rat_model.png",
+        "camera_views.png",
+        "learn_reprojection.png",
+        "learn_skeleton.png",
+    ):
         data = (tmp_path / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
     saved = np.load(tmp_path / "projections.npz")

@@ -12,15 +12,19 @@ from . import __version__
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    res = run_demo(args.out, frames=args.frames, seed=args.seed)
+    res = run_demo(args.out, frames=args.frames, seed=args.seed, learn_frames=args.learn_frames)
     rate = res.n_frames / res.seconds if res.seconds > 0 else float("inf")
     print(f"acm-rs demo: rat model (29 joints, 43 markers) in a 4-camera rig -> {res.out}/")
     print(
         f"  forward kinematics + projection of {res.n_frames:,} poses into 4 cameras: "
         f"{res.seconds:.3f} s ({rate:,.0f} poses/s)"
     )
+    report = res.learning_report()
+    if report:
+        print(report)
     for f in res.files:
         print(f"  wrote {f}")
+    print(f"open {res.out}/camera_views.png and {res.out}/learn_reprojection.png to look")
     return 0
 
 
@@ -100,10 +104,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="acm-rs", description=__doc__)
     p.add_argument("--version", action="version", version=f"acm-rs {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    d = sub.add_parser("demo", help="pose the rat model in a 4-camera rig and save pictures")
+    d = sub.add_parser(
+        "demo", help="pose the rat model in a 4-camera rig, learn a skeleton, save pictures"
+    )
     d.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     d.add_argument("--frames", type=int, default=100_000, help="poses for the timing")
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument(
+        "--learn-frames", type=int, default=100, help="labelled frames for skeleton learning"
+    )
     d.set_defaults(func=_cmd_demo)
     m = sub.add_parser("model", help="list the bundled models or describe one")
     m.add_argument("name", nargs="?", help="model name (rat, mouse)")

@@ -15,6 +15,8 @@ import numpy as np
 from . import models
 from ._io import atomic_write
 from .camera import Camera, CameraRig
+from .datasets import BODY_TO_ARENA, individual_skeleton, noisy_labels, random_poses
+from .learning import LearnedSkeleton, learn_skeleton
 from .rotation import rodrigues, rodrigues_inverse
 from .skeleton import Skeleton
 
@@ -49,10 +51,6 @@ def demo_rig(distance: float = 60.0, height: float = 45.0) -> CameraRig:
     return CameraRig(cams)
 
 
-#: Rotation taking ACM's body frame (y dorsal, z caudal) to an arena frame with z up.
-BODY_TO_ARENA = np.array([np.pi / 2, 0.0, 0.0])
-
-
 def demo_pose(skeleton: Skeleton, heading: float = 0.6) -> tuple[np.ndarray, np.ndarray]:
     """A standing pose: every limited rotation at the middle of its bounds (as Supp. Fig. 1a),
     spine and tail straight, the body turned to ``heading`` (rad) about the arena's z (up) axis
@@ -70,29 +68,38 @@ def demo_pose(skeleton: Skeleton, heading: float = 0.6) -> tuple[np.ndarray, np.
 
 @dataclass
 class DemoResult:
-    """Files written by :func:`run_demo` and the measured throughput."""
+    """Files written by :func:`run_demo`, the measured throughput and the learning outcome."""
 
     out: Path
     files: list[Path]
     n_frames: int
     seconds: float
+    learned: LearnedSkeleton | None = None
+    truth: Skeleton | None = None
+
+    def learning_report(self) -> str:
+        """Learned vs true bone lengths and marker offsets (empty without learning)."""
+        if self.learned is None or self.truth is None:
+            return ""
+        generic, learned, truth = self.learned.generic, self.learned.skeleton, self.truth
+        before = np.abs(generic.bone_lengths / truth.bone_lengths - 1)
+        after = np.abs(learned.bone_lengths / truth.bone_lengths - 1)
+        off = np.linalg.norm(learned.marker_offsets - truth.marker_offsets, axis=1)
+        unit = learned.units
+        return (
+            f"  skeleton learning from {self.learned.t.shape[0]} labelled frames (2 px noise, "
+            f"30 % unlabelled) in {self.learned.info['seconds']:.1f} s: RMS reprojection "
+            f"{self.learned.rms:.2f} px\n"
+            f"    bone lengths vs truth: median error {100 * np.median(after):.2f} % "
+            f"(generic model: {100 * np.median(before):.1f} %), max {100 * after.max():.1f} %\n"
+            f"    marker offsets vs truth: median error {np.median(off):.3f} {unit}"
+        )
 
 
-def random_poses(skeleton: Skeleton, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` random poses within the joint limits (``t (n, 3)``, ``r (n, n_bones, 3)``)."""
-    rng = np.random.default_rng(seed)
-    sm = skeleton.state_map()
-    z = rng.normal(scale=0.5, size=(n, sm.n_state))
-    z[:, :3] = rng.uniform(-0.3, 0.3, size=(n, 3))  # within +-15 cm of the centre
-    t, r = sm.to_pose(z)
-    t[:, 2] = 6.0
-    glob = rodrigues(r[:, 0] * 0.2) @ rodrigues(BODY_TO_ARENA)
-    r[:, 0] = rodrigues_inverse(glob)
-    return t, r
-
-
-def run_demo(out: str | Path = "demo_out", frames: int = 100_000, seed: int = 0) -> DemoResult:
-    """Run the demo: pictures of a posed rat in 4 cameras plus a batch throughput figure.
+def run_demo(
+    out: str | Path = "demo_out", frames: int = 100_000, seed: int = 0, learn_frames: int = 100
+) -> DemoResult:
+    """Run the demo: a posed rat in 4 cameras, batch throughput, and skeleton learning.
 
     Parameters
     ----------
@@ -101,7 +108,9 @@ def run_demo(out: str | Path = "demo_out", frames: int = 100_000, seed: int = 0)
     frames : int
         Number of random poses to push through batch FK + projection (for the timing).
     seed : int
-        Seed of the random poses.
+        Seed of the random poses and of the synthetic animal.
+    learn_frames : int
+        Labelled frames of a synthetic individual to learn its skeleton from (0: skip).
 
     Returns
     -------
@@ -123,6 +132,8 @@ def run_demo(out: str | Path = "demo_out", frames: int = 100_000, seed: int = 0)
     joints, markers = rat.forward(t, r)
     files.append(save_figure(camera_views(rig, rat, joints, markers), out / "camera_views.png"))
 
+    rig.save(out / "calibration.toml")
+    files.append(out / "calibration.toml")
     tb, rb = random_poses(rat, frames, seed)
     start = time.perf_counter()
     _, mk = rat.forward(tb, rb)
@@ -139,4 +150,17 @@ def run_demo(out: str | Path = "demo_out", frames: int = 100_000, seed: int = 0)
             marker_names=np.array(rat.marker_names),
         )
     files.append(path)
-    return DemoResult(out, files, frames, seconds)
+    result = DemoResult(out, files, frames, seconds)
+    if learn_frames > 0:
+        # Sec. 3.2: learn an individual's bone lengths and marker offsets from noisy labels.
+        truth = individual_skeleton(rat, seed=seed + 1)
+        tl, rl = random_poses(truth, learn_frames, seed=seed + 2)
+        labels = noisy_labels(rig, truth, tl, rl, 2.0, missing=0.3, seed=seed + 3)
+        start = time.perf_counter()
+        learned = learn_skeleton(rig, rat, labels, progress=False)
+        learned.info["seconds"] = time.perf_counter() - start
+        files += learned.save(out / "learned_rat")
+        files.append(save_figure(learned.plot_reprojection(), out / "learn_reprojection.png"))
+        files.append(save_figure(learned.plot_skeleton(), out / "learn_skeleton.png"))
+        result.learned, result.truth = learned, truth
+    return result

@@ -433,14 +433,19 @@ class LearnedSkeleton:
         if frame is None:
             frame = int(np.argmax(np.isfinite(self.errors).sum(axis=(0, 2))))
         joints, markers = self.skeleton.forward(self.t[frame], self.r[frame])
-        return camera_views(self.rig, self.skeleton, joints, markers, self.labels[:, frame])
+        fig = camera_views(
+            self.rig, self.skeleton, joints, markers, self.labels[:, frame], zoom=True
+        )
+        fig.suptitle(f"frame {frame}: labels (orange x) and learned model (green)")
+        fig.tight_layout(rect=(0, 0, 1, 0.96))
+        return fig
 
     def plot_skeleton(self):
         """Generic vs learned skeleton, top and side views, rotations mid-range (Supp. Fig. 1c)."""
         from .plotting import _pyplot, draw_skeleton_2d
 
         plt = _pyplot()
-        fig, axes = plt.subplots(2, 2, figsize=(10, 8))
+        fig, axes = plt.subplots(2, 2, figsize=(12, 5.5))
         for row, (sk, label) in enumerate(((self.generic, "generic"), (self.skeleton, "learned"))):
             sm = sk.state_map()
             t, r = sm.to_pose(np.zeros(sm.n_state))

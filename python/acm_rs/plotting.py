@@ -83,6 +83,7 @@ def camera_views(
     joints: np.ndarray,
     markers: np.ndarray,
     detections: np.ndarray | None = None,
+    zoom: bool = False,
 ) -> Figure:
     """One panel per camera with the projected skeleton (image coordinates, y down).
 
@@ -92,6 +93,8 @@ def camera_views(
     markers : array_like, shape (M, 3)
     detections : array_like, shape (n_cams, M, 2), optional
         2D observations drawn as crosses with lines to the projected markers.
+    zoom : bool
+        Show only the region around the animal (40 px margin) instead of the whole image.
     """
     plt = _pyplot()
     n = len(rig)
@@ -109,8 +112,16 @@ def camera_views(
             for a, b in zip(d, pm[i], strict=True):
                 ax.plot([a[0], b[0]], [a[1], b[1]], "-", color="tab:orange", lw=0.6)
         w, h = cam.size if cam.size is not None else (2 * cam.params[8], 2 * cam.params[9])
-        ax.set_xlim(0, w)
-        ax.set_ylim(h, 0)
+        pts = [pj[i], pm[i]] + ([detections[i]] if detections is not None else [])
+        pts = np.concatenate(pts)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        if zoom and len(pts):
+            lo, hi = pts.min(axis=0) - 40, pts.max(axis=0) + 40
+            ax.set_xlim(lo[0], hi[0])
+            ax.set_ylim(hi[1], lo[1])
+        else:
+            ax.set_xlim(0, w)
+            ax.set_ylim(h, 0)
         ax.set_aspect("equal")
         ax.set_title(cam.name or f"camera {i}")
         ax.set_facecolor("0.97")
