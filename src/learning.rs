@@ -202,6 +202,19 @@ impl LearningProblem {
         }
     }
 
+    /// One frame's state → `(t, r, ∂pose[free]/∂z)` (Alg. 4 lines 1-3, linear map).
+    fn decode(&self, z: &[f64]) -> (Vector3<f64>, Vec<Vector3<f64>>, Vec<f64>) {
+        let mut pose = vec![0.0; self.skeleton.n_pose()];
+        let mut dz = vec![0.0; z.len()];
+        self.map.to_pose_into(z, &mut pose, Some(&mut dz));
+        let t = Vector3::new(pose[0], pose[1], pose[2]);
+        let r = pose[3..]
+            .chunks(3)
+            .map(|c| Vector3::new(c[0], c[1], c[2]))
+            .collect();
+        (t, r, dz)
+    }
+
     /// Objective value and exact gradient (eq. 9/12), in parallel over frames.
     ///
     /// # Errors
@@ -272,14 +285,7 @@ impl LearningProblem {
     ) -> f64 {
         let sk = &self.skeleton;
         let nm = sk.n_markers();
-        let mut pose = vec![0.0; sk.n_pose()];
-        let mut dz = vec![0.0; z.len()];
-        self.map.to_pose_into(z, &mut pose, Some(&mut dz));
-        let t = Vector3::new(pose[0], pose[1], pose[2]);
-        let r: Vec<Vector3<f64>> = pose[3..]
-            .chunks(3)
-            .map(|c| Vector3::new(c[0], c[1], c[2]))
-            .collect();
+        let (t, r, dz) = self.decode(z);
         let fk = sk.forward_unchecked(&t, &r, lengths, offsets);
         let mut value = 0.0;
         let mut g = vec![Vector3::zeros(); nm];
@@ -340,14 +346,7 @@ impl LearningProblem {
             .zip(x[nsk..].par_chunks(ns))
             .zip(self.labels.par_chunks(per_frame))
             .map(|((dz_out, z), obs)| {
-                let mut pose = vec![0.0; np];
-                let mut dz = vec![0.0; ns];
-                self.map.to_pose_into(z, &mut pose, Some(&mut dz));
-                let t = Vector3::new(pose[0], pose[1], pose[2]);
-                let r: Vec<Vector3<f64>> = pose[3..]
-                    .chunks(3)
-                    .map(|c| Vector3::new(c[0], c[1], c[2]))
-                    .collect();
+                let (t, r, dz) = self.decode(z);
                 let jac = sk
                     .forward_jacobian(&t, &r, Some(&lengths), Some(&offsets))
                     .expect("validated inputs");
@@ -425,14 +424,7 @@ impl LearningProblem {
     ) -> (Vec<f64>, DMatrix<f64>) {
         let sk = &self.skeleton;
         let (nm, np, ns) = (sk.n_markers(), sk.n_pose(), z.len());
-        let mut pose = vec![0.0; np];
-        let mut dz = vec![0.0; ns];
-        self.map.to_pose_into(z, &mut pose, Some(&mut dz));
-        let t = Vector3::new(pose[0], pose[1], pose[2]);
-        let r: Vec<Vector3<f64>> = pose[3..]
-            .chunks(3)
-            .map(|c| Vector3::new(c[0], c[1], c[2]))
-            .collect();
+        let (t, r, dz) = self.decode(z);
         let jac = sk
             .forward_jacobian(&t, &r, Some(lengths), Some(offsets))
             .expect("validated inputs");
