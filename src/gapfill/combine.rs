@@ -135,7 +135,7 @@ fn run(
         // a few thousand frames determine them, and long sequences stay fast.
         let (a, b) = em_block(seq.t);
         let block = &seq.x[a * seq.d..b * seq.d];
-        let bp = Patterns::new(block, seq.d, &model);
+        let bp = Patterns::new(block, seq.d);
         info.em_iters = smoother::em(
             block,
             &mut model,
@@ -145,7 +145,7 @@ fn run(
             opts.memo_tol,
         )?;
     }
-    let pats = Patterns::new(seq.x, seq.d, &model);
+    let pats = Patterns::new(seq.x, seq.d);
     let sm = smoother::smooth(seq.x, &model, &pats, opts.want_std, opts.memo_tol)?;
     info.dim = k;
     info.r = model.r;

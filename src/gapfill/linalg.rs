@@ -49,3 +49,152 @@ pub fn sorted_eigen(m: DMatrix<f64>) -> (Vec<f64>, DMatrix<f64>) {
     let vecs = DMatrix::from_fn(n, n, |r, c| eig.eigenvectors[(r, order[c])]);
     (vals, vecs)
 }
+
+/// Runs `$body` compiled for AVX2 + FMA when the CPU has them (runtime dispatch), else for the
+/// baseline target: the column-oriented kernels below vectorise twice as wide.
+macro_rules! dispatch {
+    ($name:ident($($arg:ident : $ty:ty),*) -> $ret:ty $body:block) => {
+        fn $name($($arg: $ty),*) -> $ret {
+            #[inline(always)]
+            fn kernel($($arg: $ty),*) -> $ret $body
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn wide($($arg: $ty),*) -> $ret {
+                    kernel($($arg),*)
+                }
+                if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU supports the enabled features (checked above).
+                    return unsafe { wide($($arg),*) };
+                }
+            }
+            kernel($($arg),*)
+        }
+    };
+}
+
+dispatch!(chol_kernel(a: &mut [f64], n: usize) -> bool {
+    for j in 0..n {
+        let (done, rest) = a.split_at_mut(j * n);
+        let cj = &mut rest[..n];
+        for p in 0..j {
+            let cp = &done[p * n..(p + 1) * n];
+            let f = cp[j];
+            if f != 0.0 {
+                for (x, y) in cj[j..].iter_mut().zip(&cp[j..]) {
+                    *x -= f * y;
+                }
+            }
+        }
+        let djj = cj[j];
+        if !(djj > 0.0 && djj.is_finite()) {
+            return false;
+        }
+        let d = djj.sqrt();
+        cj[j] = d;
+        let inv = 1.0 / d;
+        cj[j + 1..].iter_mut().for_each(|x| *x *= inv);
+        cj[..j].iter_mut().for_each(|x| *x = 0.0);
+    }
+    true
+});
+
+dispatch!(lower_inverse_kernel(ls: &[f64], ws: &mut [f64], n: usize) -> () {
+    for c in 0..n {
+        let col = &mut ws[c * n..(c + 1) * n];
+        col[c] = 1.0;
+        for j in c..n {
+            let lj = &ls[j * n..(j + 1) * n];
+            let v = col[j] / lj[j];
+            col[j] = v;
+            if v != 0.0 {
+                for (x, y) in col[j + 1..].iter_mut().zip(&lj[j + 1..]) {
+                    *x -= v * y;
+                }
+            }
+        }
+    }
+});
+
+dispatch!(outer_kernel(g: &mut [f64], v: &[f64], k: usize, idx: &[u32], sign: f64) -> () {
+    for &i in idx {
+        let row = &v[i as usize * k..(i as usize + 1) * k];
+        for (b, &vb) in row.iter().enumerate() {
+            let f = sign * vb;
+            for (gab, va) in g[b * k..(b + 1) * k].iter_mut().zip(row) {
+                *gab += va * f;
+            }
+        }
+    }
+});
+
+/// `G += sign · Σ_{i ∈ idx} v_i v_iᵀ` for the rows `v_i` of the row-major `· × k` matrix `v`.
+pub fn add_outer(g: &mut DMatrix<f64>, v: &[f64], k: usize, idx: &[u32], sign: f64) {
+    outer_kernel(g.as_mut_slice(), v, k, idx, sign);
+}
+
+/// Lower Cholesky factor `L` (`m = L Lᵀ`) of a symmetric positive-definite matrix (only the
+/// lower triangle of `m` is read), or `None`. Left-looking, column-oriented (contiguous axpy).
+pub fn cholesky_lower(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
+    let n = m.nrows();
+    let mut l = m.clone();
+    chol_kernel(l.as_mut_slice(), n).then_some(l)
+}
+
+/// Inverse `L⁻¹` of a lower-triangular matrix with a positive diagonal (column-oriented).
+pub fn lower_inverse(l: &DMatrix<f64>) -> DMatrix<f64> {
+    let n = l.nrows();
+    let mut w = DMatrix::<f64>::zeros(n, n);
+    lower_inverse_kernel(l.as_slice(), w.as_mut_slice(), n);
+    w
+}
+
+/// Inverse of a symmetric positive-definite matrix, `A⁻¹ = L⁻ᵀ L⁻¹` (symmetric), or `None`.
+pub fn spd_inverse_lower(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
+    let w = lower_inverse(&cholesky_lower(m)?);
+    let mut inv = w.transpose() * &w;
+    symmetrize(&mut inv);
+    Some(inv)
+}
+
+/// Solves `L Lᵀ x = b` in place for a lower Cholesky factor `L`.
+pub fn chol_solve_in_place(l: &DMatrix<f64>, b: &mut [f64]) {
+    let n = l.nrows();
+    // L y = b (column-oriented forward substitution).
+    let ls = l.as_slice();
+    for c in 0..n {
+        let col = &ls[c * n..(c + 1) * n];
+        let yc = b[c] / col[c];
+        b[c] = yc;
+        for (x, y) in b[c + 1..].iter_mut().zip(&col[c + 1..]) {
+            *x -= y * yc;
+        }
+    }
+    // Lᵀ x = y (row r of Lᵀ is column r of L).
+    let ls = l.as_slice();
+    for r in (0..n).rev() {
+        let s = dot(&ls[r * n + r + 1..(r + 1) * n], &b[r + 1..]);
+        b[r] = (b[r] - s) / l[(r, r)];
+    }
+}
+
+/// Dot product with eight independent accumulators (vectorises without reassociation flags).
+#[inline]
+pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f64; 8];
+    let ca = a.chunks_exact(8);
+    let cb = b.chunks_exact(8);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for i in 0..8 {
+            acc[i] += x[i] * y[i];
+        }
+    }
+    let mut s = ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
+    for (x, y) in ra.iter().zip(rb) {
+        s += x * y;
+    }
+    s
+}
