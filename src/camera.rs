@@ -216,16 +216,6 @@ impl Camera {
             d_params,
         })
     }
-
-    /// `∂x_cam/∂r̃` (3×3, column k = `(∂R/∂r̃_k) x`) for residuals that chain their own
-    /// derivatives through the camera frame.
-    pub fn d_camera_d_rvec(&self, x: &Vector3<f64>) -> Matrix3<f64> {
-        let mut m = Matrix3::zeros();
-        for k in 0..3 {
-            m.set_column(k, &(self.drot[k] * x));
-        }
-        m
-    }
 }
 
 /// Pixels and visibility of `n` points in `c` cameras.

@@ -230,8 +230,10 @@ impl LearningProblem {
         let (nb, nm) = (self.skeleton.n_bones(), self.skeleton.n_markers());
         let mut grad = vec![0.0; x.len()];
         let scale = 1.0 / self.n_labels as f64;
-        // Per-frame gradients go straight into their slice; skeleton gradients are reduced.
-        let (value, gl, gv) = grad[nsk..]
+        // Per-frame gradients go straight into their slice; the skeleton gradients of the
+        // frames are collected in frame order and summed sequentially, so the result does not
+        // depend on how rayon split the work (reproducible optimiser paths).
+        let per_frame_parts: Vec<(f64, Vec<f64>, Vec<Vector3<f64>>)> = grad[nsk..]
             .par_chunks_mut(ns)
             .zip(x[nsk..].par_chunks(ns))
             .zip(self.labels.par_chunks(per_frame))
@@ -241,15 +243,15 @@ impl LearningProblem {
                 let f = self.frame_value_grad(&lengths, &offsets, z, obs, gz, &mut gl, &mut gv);
                 (f, gl, gv)
             })
-            .reduce(
-                || (0.0, vec![0.0; nb], vec![Vector3::zeros(); nm]),
-                |mut a, b| {
-                    a.0 += b.0;
-                    a.1.iter_mut().zip(&b.1).for_each(|(x, y)| *x += y);
-                    a.2.iter_mut().zip(&b.2).for_each(|(x, y)| *x += y);
-                    a
-                },
-            );
+            .collect();
+        let mut value = 0.0;
+        let mut gl = vec![0.0; nb];
+        let mut gv = vec![Vector3::zeros(); nm];
+        for (f, l, v) in &per_frame_parts {
+            value += f;
+            gl.iter_mut().zip(l).for_each(|(a, b)| *a += b);
+            gv.iter_mut().zip(v).for_each(|(a, b)| *a += b);
+        }
         for g in grad[nsk..].iter_mut() {
             *g *= scale;
         }
@@ -390,14 +392,13 @@ impl LearningProblem {
                 }
                 (dl, dv)
             })
-            .reduce(
-                || (vec![0.0; nb], vec![0.0; 3 * nm]),
-                |mut a, b| {
-                    a.0.iter_mut().zip(&b.0).for_each(|(x, y)| *x += y);
-                    a.1.iter_mut().zip(&b.1).for_each(|(x, y)| *x += y);
-                    a
-                },
-            );
+            .collect::<Vec<_>>()
+            .into_iter()
+            .fold((vec![0.0; nb], vec![0.0; 3 * nm]), |mut a, b| {
+                a.0.iter_mut().zip(&b.0).for_each(|(x, y)| *x += y);
+                a.1.iter_mut().zip(&b.1).for_each(|(x, y)| *x += y);
+                a
+            });
         if let Mode::Full = self.mode {
             let s2 = self.length_scale * self.length_scale;
             let nrb = self.sym.n_reduced_bones();

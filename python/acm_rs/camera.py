@@ -345,10 +345,10 @@ class CameraRig:
 
 
 def _checked_params(params: np.ndarray) -> np.ndarray:
-    # Validation happens in Rust (focal lengths > 0, finite); projecting zero points runs it.
-    params = np.ascontiguousarray(params, dtype=np.float64)
+    """Validate ``(n, 15)`` camera parameters in Rust (finite, focal lengths > 0); a copy."""
+    params = np.array(params, dtype=np.float64, order="C")
     _native.project(params, np.zeros((0, 3)))
-    return params[0:1].copy() if params.shape[0] == 1 else params
+    return params
 
 
 def _project(params: np.ndarray, points: np.ndarray) -> np.ndarray:
