@@ -105,3 +105,22 @@ class NativeLearning:
         self, x: F64, lower: F64, upper: F64, max_iter: int
     ) -> tuple[F64, list[int]]: ...
     def residuals(self, x: F64) -> tuple[F64, F64, F64, F64]: ...
+
+def gapfill_fill(
+    x: F64,
+    method: str,
+    gamma: float,
+    criterion: str,
+    dim: int | None,
+    r: float | None,
+    em_iters: int,
+    paper_q: bool,
+    subspace_iters: int,
+    min_complete: int,
+    combine: str,
+    short_gap: int | None,
+    keep_original: bool,
+    want_std: bool,
+    memo_tol: float,
+    seed: int,
+) -> tuple[F64, F64 | None, dict[str, object]]: ...
