@@ -317,6 +317,26 @@ fn lam_dist(states: &[FState], w: &White, a: u32, b: u32) -> f64 {
     s.sqrt()
 }
 
+/// `Σ_i c_i M_i` over the entries with `c_i > 0`, in parallel over fixed chunks whose partial
+/// sums are added in order (the result does not depend on the thread count).
+fn weighted_sum(counts: &[f64], mats: &[DMatrix<f64>], k: usize) -> DMatrix<f64> {
+    counts
+        .par_chunks(64)
+        .zip(mats.par_chunks(64))
+        .map(|(cs, ms)| {
+            let mut acc = DMatrix::<f64>::zeros(k, k);
+            for (&c, m) in cs.iter().zip(ms) {
+                if c > 0.0 {
+                    acc.iter_mut().zip(m.iter()).for_each(|(a, b)| *a += c * b);
+                }
+            }
+            acc
+        })
+        .collect::<Vec<_>>()
+        .into_iter()
+        .fold(DMatrix::zeros(k, k), |a, b| a + b)
+}
+
 /// Runs the forward filter and the RTS smoother (B&L Algorithm 1 with gain A.6) on the
 /// row-major `T × D` sequence `x`; with `want_cov` also the smoothed covariances (A.8) and the
 /// lag-one terms EM needs.
@@ -805,38 +825,8 @@ pub fn em_update(
         }
         *cnt_tr.entry((pats.of_frame[t], c)).or_default() += 1.0;
     }
-    let add = |mut a: DMatrix<f64>, b: DMatrix<f64>| {
-        a += b;
-        a
-    };
-    let sc = cnt_cov
-        .par_iter()
-        .enumerate()
-        .filter(|(_, &c)| c > 0.0)
-        .fold(
-            || DMatrix::<f64>::zeros(k, k),
-            |mut acc, (i, &c)| {
-                acc.iter_mut()
-                    .zip(sm.covs[i].iter())
-                    .for_each(|(a, b)| *a += c * b);
-                acc
-            },
-        )
-        .reduce(|| DMatrix::zeros(k, k), add);
-    let sl = cnt_lag
-        .par_iter()
-        .enumerate()
-        .filter(|(_, &c)| c > 0.0)
-        .fold(
-            || DMatrix::<f64>::zeros(k, k),
-            |mut acc, (i, &c)| {
-                acc.iter_mut()
-                    .zip(sm.lags[i].iter())
-                    .for_each(|(a, b)| *a += c * b);
-                acc
-            },
-        )
-        .reduce(|| DMatrix::zeros(k, k), add);
+    let sc = weighted_sum(&cnt_cov, &sm.covs, k);
+    let sl = weighted_sum(&cnt_lag, &sm.lags, k);
     let white_sum = sc - &sl - sl.transpose();
     let mut s = dd + &w.l * white_sum * w.l.transpose();
     s /= t_len as f64 - 1.0;
