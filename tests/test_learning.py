@@ -242,3 +242,13 @@ def test_read_dlc_h5_multi_animal(tmp_path):
     assert ls.frames.tolist() == [7, 9] and ls.bodyparts == ["head_001", "spine_001"]
     np.testing.assert_array_equal(ls.points[0, 0], [[4.0, 5.0], [6.0, 7.0]])
     assert np.isnan(ls.points[0, 1, 0, 0])
+
+
+def test_pose_state_initialises_the_tracker(learned):
+    # mu_0 of the tracker: the learned pose in the erf-constrained state space (Alg. 10).
+    z = learned.pose_state(3)
+    sm = learned.skeleton.state_map()
+    assert z.shape == (sm.n_state,) == (50,)
+    t, r = sm.to_pose(z)
+    np.testing.assert_allclose(t, learned.t[3], atol=1e-9)
+    np.testing.assert_allclose(r, learned.r[3], atol=1e-6)
