@@ -37,10 +37,8 @@ def _cmd_gapfill(args: argparse.Namespace) -> int:
         names = [m.labels[i] for i in res.info["skipped_markers"]]
         print(f"  left missing (never observed): {', '.join(names)}")
     if args.std:
-        from .io import write_like as _w
-
         std = res.std if res.std is not None else np.zeros_like(res.filled)
-        _w(Path(args.std), m, std)
+        write_like(Path(args.std), m, std)
         print(f"  wrote posterior standard deviations to {args.std}")
     return 0
 
