@@ -138,6 +138,25 @@ pub fn emission_batch(
     norm: &Normalization,
     states: &[f64],
 ) -> Result<Vec<f64>> {
+    let ns = map.n_state().max(1);
+    let block = cameras.len() * skeleton.n_markers() * 2;
+    let mut out = vec![0.0; (states.len() / ns) * block];
+    emission_batch_into(skeleton, cameras, map, norm, states, &mut out)?;
+    Ok(out)
+}
+
+/// Like [`emission_batch`], writing into a caller-provided `(N, n_cams · M · 2)` buffer.
+///
+/// # Errors
+/// As [`emission_batch`], plus a shape error for a wrong buffer size.
+pub fn emission_batch_into(
+    skeleton: &Skeleton,
+    cameras: &[Camera],
+    map: &StateMap,
+    norm: &Normalization,
+    states: &[f64],
+    out: &mut [f64],
+) -> Result<()> {
     norm.validate()?;
     ensure_len(map.n_pose(), skeleton.n_pose(), "state map pose length")?;
     let ns = map.n_state();
@@ -154,9 +173,9 @@ pub fn emission_batch(
         )));
     }
     let block = cameras.len() * skeleton.n_markers() * 2;
-    let mut out = vec![0.0; (states.len() / ns) * block];
+    ensure_len(out.len(), (states.len() / ns) * block, "emission output buffer")?;
     if block == 0 {
-        return Ok(out);
+        return Ok(());
     }
     out.par_chunks_mut(block)
         .zip(states.par_chunks(ns))
@@ -186,7 +205,7 @@ pub fn emission_batch(
                 }
             },
         );
-    Ok(out)
+    Ok(())
 }
 
 #[cfg(test)]

@@ -13,6 +13,7 @@
 //! | [`limits`] | sec. 4.4.3, Alg. 10 (joint-angle limits, state map) |
 //! | [`emission`] | sec. 4.1, Alg. 4 (emission function `g`) |
 //! | [`learning`] | sec. 3.2-3.4, eqs. 9-12 (skeleton learning objective) |
+//! | [`tracking`] | sec. 4, Alg. 5-13 (UKF, RTS smoother, EM) |
 //! | [`gapfill`] | Burke & Lasenby 2016 (marker gap filling) |
 //!
 //! The core is pure Rust (no Python); the `python` cargo feature adds the pyo3 bindings in
@@ -28,6 +29,7 @@ pub mod normalization;
 pub mod rotation;
 pub mod skeleton;
 pub mod symmetry;
+pub mod tracking;
 
 #[cfg(feature = "python")]
 mod python;

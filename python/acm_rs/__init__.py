@@ -13,6 +13,7 @@ from .learning import LearnedSkeleton, fit_pose, learn_skeleton
 from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
 from .skeleton import BoneLengthConstraint, FKJacobian, Skeleton, SymmetryMap
 from .state import Normalization, StateMap
+from .tracking import PoseResult, track
 
 __version__ = "0.1.0"
 
@@ -25,6 +26,7 @@ __all__ = [
     "LearnedSkeleton",
     "Normalization",
     "PARAM_NAMES",
+    "PoseResult",
     "Skeleton",
     "StateMap",
     "SymmetryMap",
@@ -38,4 +40,5 @@ __all__ = [
     "rodrigues",
     "rodrigues_inverse",
     "rodrigues_jacobian",
+    "track",
 ]

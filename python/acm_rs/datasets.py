@@ -100,3 +100,108 @@ def noisy_labels(
             drop[c] |= out | (px[c, ..., 1] >= h)
     px[drop] = np.nan
     return px
+
+
+def smooth_motion(
+    skeleton: Skeleton,
+    n_frames: int,
+    seed: int = 0,
+    spread: float = 0.5,
+    speed: float = 1.0,
+    arena: float = 8.0,
+    height: float = 6.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth behaviour sequence within the joint limits (arena frame, z up).
+
+    Every free rotation entry follows a sum of three sinusoids in the erf state space of
+    Alg. 10 (so limits always hold), the heading turns slowly and the body wanders on a
+    smooth path within ``+-arena``. ``speed`` scales all frequencies (1.0: periods of
+    roughly 40-200 frames, i.e. natural movement at 100 Hz when ``dt = 1``).
+
+    Returns
+    -------
+    t : numpy.ndarray, shape (n_frames, 3)
+    r : numpy.ndarray, shape (n_frames, n_bones, 3)
+    """
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    rng = np.random.default_rng(seed)
+    sm = skeleton.state_map()
+    k = np.arange(n_frames, dtype=float)[:, None]
+
+    def wave(n_series: int) -> np.ndarray:
+        out = np.zeros((n_frames, n_series))
+        for _ in range(3):
+            period = rng.uniform(40.0, 200.0, n_series) / speed
+            phase = rng.uniform(0.0, 2 * np.pi, n_series)
+            out += np.sin(2 * np.pi * k / period + phase) / np.sqrt(3.0)
+        return out
+
+    z = spread * wave(sm.n_state)
+    _, r = sm.to_pose(z)
+    heading = rng.uniform(-np.pi, np.pi) + 0.8 * wave(1)[:, 0] * speed**0
+    tilt = 0.1 * wave(3) * [1.0, 1.0, 0.0]
+    glob = (
+        rodrigues(np.stack([np.zeros(n_frames), np.zeros(n_frames), heading], axis=1))
+        @ rodrigues(tilt)
+        @ rodrigues(BODY_TO_ARENA)
+    )
+    r[:, 0] = rodrigues_inverse(glob)
+    t = np.column_stack([arena * 0.8 * wave(2), height + 0.5 * wave(1)])
+    return t, r
+
+
+def dlc_like_detections(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    t: np.ndarray,
+    r: np.ndarray,
+    noise_px: float = 2.0,
+    missing: float = 0.15,
+    burst: float = 8.0,
+    outliers: float = 0.01,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """2D detections like a DeepLabCut network's: noise, occlusion bursts, confident outliers.
+
+    Parameters
+    ----------
+    noise_px : float
+        Standard deviation of the Gaussian pixel noise.
+    missing : float
+        Fraction of entries missing, in bursts (per camera and marker) of mean length
+        ``burst`` frames; their likelihood is low (< 0.5).
+    outliers : float
+        Fraction of entries replaced by a wrong location 30-150 px away with a *high*
+        likelihood (0.95-1.0), the failure mode that a likelihood cutoff cannot catch.
+
+    Returns
+    -------
+    detections : numpy.ndarray, shape (n_cams, T, M, 2)
+        Pixels; NaN only where a marker is behind a camera or outside the image.
+    likelihood : numpy.ndarray, shape (n_cams, T, M)
+    """
+    rng = np.random.default_rng(seed)
+    px = skeleton.project(rig, t, r)
+    px = px + rng.normal(scale=noise_px, size=px.shape)
+    n_cams, n_frames, n_markers = px.shape[:3]
+    lik = rng.uniform(0.95, 1.0, px.shape[:3])
+    # Occlusion bursts: a two-state Markov chain per (camera, marker) with the requested
+    # stationary fraction and mean burst length.
+    p_end = 1.0 / max(burst, 1.0)
+    p_start = p_end * missing / max(1.0 - missing, 1e-9)
+    state = rng.random((n_cams, n_markers)) < missing
+    for f in range(n_frames):
+        u = rng.random((n_cams, n_markers))
+        state = np.where(state, u >= p_end, u < p_start)
+        lik[:, f][state] = rng.uniform(0.0, 0.5, int(state.sum()))
+    wrong = (rng.random(px.shape[:3]) < outliers) & (lik >= 0.95)
+    angle = rng.uniform(0, 2 * np.pi, int(wrong.sum()))
+    dist = rng.uniform(30.0, 150.0, int(wrong.sum()))
+    px[wrong] += np.column_stack([np.cos(angle), np.sin(angle)]) * dist[:, None]
+    for c, cam in enumerate(rig):
+        if cam.size is not None:
+            w, h = cam.size
+            out = (px[c, ..., 0] < 0) | (px[c, ..., 0] >= w) | (px[c, ..., 1] < 0)
+            px[c][out | (px[c, ..., 1] >= h)] = np.nan
+    return px, lik

@@ -6,6 +6,7 @@
 mod error;
 mod gapfill;
 mod learning;
+mod tracking;
 
 use crate::camera::{self, Camera};
 use crate::emission;
@@ -596,6 +597,7 @@ fn native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PySymmetry>()?;
     m.add_class::<PyStateMap>()?;
     m.add_class::<learning::PyLearning>()?;
+    m.add_class::<tracking::PyTracker>()?;
     m.add("AcmNumericalError", m.py().get_type::<AcmNumericalError>())?;
     m.add("N_CAMERA_PARAMS", camera::N_PARAMS)?;
     gapfill::register(m)?;

@@ -1,0 +1,6 @@
+"""Probabilistic pose estimation (ACM supp. sec. 4): :func:`track` and :class:`PoseResult`."""
+
+from .result import PoseResult
+from .track import DEFAULT_GATE, default_normalization, gate_threshold, track
+
+__all__ = ["DEFAULT_GATE", "PoseResult", "default_normalization", "gate_threshold", "track"]

@@ -1,0 +1,189 @@
+"""The result of :func:`acm_rs.track`: smoothed poses, their uncertainty and diagnostics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .._io import atomic_write
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..camera import CameraRig
+    from ..skeleton import Skeleton
+    from ..state import StateMap
+
+
+@dataclass
+class PoseResult:
+    """Poses of one recording reconstructed by :func:`acm_rs.track`.
+
+    Lengths are in the units of the skeleton and the rig (``skeleton.units``, e.g. mm).
+
+    Attributes
+    ----------
+    joints : numpy.ndarray, shape (T, J, 3)
+        Joint positions (forward kinematics of the posterior mean pose).
+    joints_std : numpy.ndarray, shape (T, J, 3)
+        Posterior standard deviation of each joint coordinate (unscented transform of the
+        state posterior through forward kinematics); zeros for ``method="deterministic"``.
+    markers : numpy.ndarray, shape (T, M, 3)
+        Marker positions of the posterior mean pose.
+    t : numpy.ndarray, shape (T, 3)
+        Global translation per frame.
+    r : numpy.ndarray, shape (T, n_bones, 3)
+        Bone rotations (Rodrigues vectors, rad), within the joint limits.
+    state_mean : numpy.ndarray, shape (T, n_state)
+        Smoothed state means (normalised, erf-constrained state of Alg. 10).
+    state_cov : numpy.ndarray, shape (T, n_state, n_state) or None
+        Smoothed state covariances (None for the deterministic method).
+    detections : numpy.ndarray, shape (n_cams, T, M, 2)
+        The measurements used (px, skeleton marker order), NaN where missing or below pcutoff.
+    em_history : list of dict
+        Per EM iteration: ``iteration``, ``delta`` (mean relative change of Alg. 13),
+        ``seconds`` (wall time of the iteration), ``gated`` (measurements rejected by the
+        innovation gate).
+    info : dict
+        ``method``, ``converged``, ``iterations``, ``tol``, ``params`` (learned ``mu0``,
+        ``V0``, ``Vz``, ``Vx_diag``), ``gated`` (mask of gated measurements), timings.
+    """
+
+    skeleton: Skeleton
+    rig: CameraRig
+    state_map: StateMap
+    joints: np.ndarray
+    joints_std: np.ndarray
+    markers: np.ndarray
+    t: np.ndarray
+    r: np.ndarray
+    state_mean: np.ndarray
+    state_cov: np.ndarray | None
+    detections: np.ndarray
+    em_history: list[dict] = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_frames(self) -> int:
+        """Number of frames T."""
+        return int(self.joints.shape[0])
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Names of the J joints."""
+        return self.skeleton.joint_names
+
+    @property
+    def marker_names(self) -> tuple[str, ...]:
+        """Names of the M markers."""
+        return self.skeleton.marker_names
+
+    def projected(self) -> np.ndarray:
+        """Markers of the mean poses projected into every camera, shape (n_cams, T, M, 2) px."""
+        return self.skeleton.project(self.rig, self.t, self.r)
+
+    def reprojection_error(self) -> np.ndarray:
+        """Distance between detections and reprojected markers, shape (n_cams, T, M) px.
+
+        NaN where there was no detection (missing or below ``pcutoff``).
+        """
+        return np.linalg.norm(self.projected() - self.detections, axis=-1)
+
+    def sample(self, n: int, seed: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Draw poses from the posterior and propagate them through forward kinematics.
+
+        The paper reports mean ± std of 1000 such propagations.
+
+        Parameters
+        ----------
+        n : int
+            Number of samples per frame.
+        seed : int, optional
+            Seed of the random generator.
+
+        Returns
+        -------
+        joints : numpy.ndarray, shape (n, T, J, 3)
+        markers : numpy.ndarray, shape (n, T, M, 3)
+        """
+        if self.state_cov is None:
+            raise ValueError("this result has no posterior covariance (method='deterministic')")
+        if n < 1:
+            raise ValueError(f"n must be >= 1, got {n}")
+        rng = np.random.default_rng(seed)
+        chol = np.linalg.cholesky(
+            0.5 * (self.state_cov + self.state_cov.transpose(0, 2, 1))
+            + 1e-12 * np.eye(self.state_cov.shape[-1])
+        )
+        eps = rng.standard_normal((n,) + self.state_mean.shape)
+        z = self.state_mean[None] + np.einsum("tij,ntj->nti", chol, eps)
+        t, r = self.state_map.to_pose(z)
+        joints, markers = self.skeleton.forward(t.reshape(-1, 3), r.reshape((-1,) + r.shape[2:]))
+        shape = (n, self.n_frames)
+        return joints.reshape(shape + joints.shape[1:]), markers.reshape(shape + markers.shape[1:])
+
+    def summary(self) -> str:
+        """A short text report: method, EM iterations, convergence, reprojection error."""
+        err = self.reprojection_error()
+        ok = np.isfinite(err)
+        lines = [
+            f"tracked {self.n_frames} frames ({self.info.get('method', '?')}): "
+            + (
+                f"{len(self.em_history)} EM iterations, "
+                + ("converged" if self.info.get("converged") else "NOT converged")
+                + f" (last delta {self.em_history[-1]['delta']:.3g}), "
+                if self.em_history
+                else ""
+            )
+            + f"mean reprojection error {np.mean(err[ok]):.2f} px over {int(ok.sum())} "
+            f"detections (median {np.median(err[ok]):.2f} px)"
+            if ok.any()
+            else "no detections"
+        ]
+        if "seconds" in self.info:
+            lines.append(f"  wall time {self.info['seconds']:.2f} s")
+        return "\n".join(lines)
+
+    def save(self, path: str | Path) -> list[Path]:
+        """Write ``<path>.npz`` (every array) and ``<path>_joints.csv``, atomically.
+
+        The CSV has one row per frame and columns ``<joint>_x, <joint>_y, <joint>_z`` followed
+        by ``<joint>_x_std, ...``; lengths in ``skeleton.units``.
+        """
+        path = Path(path)
+        base = path.with_suffix("") if path.suffix in (".npz", ".csv") else path
+        npz = base.with_suffix(".npz")
+        arrays = {
+            "joints": self.joints,
+            "joints_std": self.joints_std,
+            "markers": self.markers,
+            "t": self.t,
+            "r": self.r,
+            "state_mean": self.state_mean,
+            "detections": self.detections,
+            "joint_names": np.array(self.joint_names),
+            "marker_names": np.array(self.marker_names),
+            "em_delta": np.array([h["delta"] for h in self.em_history], float),
+            "em_seconds": np.array([h["seconds"] for h in self.em_history], float),
+        }
+        if self.state_cov is not None:
+            arrays["state_cov"] = self.state_cov
+        for k, v in self.info.get("params", {}).items():
+            arrays[f"param_{k}"] = np.asarray(v)
+        with atomic_write(npz, "wb") as fh:
+            np.savez(fh, **arrays)
+        csv = base.with_name(base.name + "_joints.csv")
+        cols = [f"{j}_{a}" for j in self.joint_names for a in "xyz"]
+        header = ",".join(["frame"] + cols + [c + "_std" for c in cols])
+        table = np.concatenate(
+            [
+                np.arange(self.n_frames)[:, None],
+                self.joints.reshape(self.n_frames, -1),
+                self.joints_std.reshape(self.n_frames, -1),
+            ],
+            axis=1,
+        )
+        with atomic_write(csv, "w") as fh:
+            np.savetxt(fh, table, delimiter=",", header=header, comments="", fmt="%.6g")
+        return [npz, csv]

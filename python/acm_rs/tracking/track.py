@@ -1,0 +1,288 @@
+"""Probabilistic pose estimation (ACM supp. sec. 4): EM with the unscented RTS smoother.
+
+The numerical work (Alg. 5-13) runs in Rust (``acm_rs._native.NativeTracker``) with the GIL
+released; this module prepares the measurements, initialises ``mu_0`` by the single-frame fit
+of sec. 4.7 and packages the posterior as a :class:`PoseResult`.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from .. import _native
+from ..camera import CameraRig
+from ..learning import (
+    _labels_in_skeleton_order,
+    _pose_bounds,
+    _to_state,
+    fit_pose,
+    initial_poses,
+)
+from ..skeleton import Skeleton
+from ..state import Normalization, StateMap
+from .result import PoseResult
+
+#: Default innovation gate: probability mass of the chi-square distribution with 2 degrees of
+#: freedom inside the gate (an image point is rejected for the frame when its squared
+#: Mahalanobis innovation exceeds ``-2 ln(1 - p)``; 0.999 -> 13.8).
+DEFAULT_GATE = 0.999
+
+_UNIT_SCALE = {"mm": 500.0, "cm": 50.0, "m": 0.5}
+
+
+def default_normalization(rig: CameraRig, skeleton: Skeleton) -> Normalization:
+    """Sec. 3.3 constants for a rig and skeleton.
+
+    ``c_1, c_2`` are half the largest image size in the rig (640, 512 for 1280x1024 sensors,
+    the paper's value when sizes are unknown); ``c_t`` is 50 cm in the skeleton's units.
+    """
+    sizes = [cam.size for cam in rig if cam.size is not None]
+    translation = _UNIT_SCALE.get(skeleton.units, 50.0)
+    if sizes:
+        w = max(s[0] for s in sizes)
+        h = max(s[1] for s in sizes)
+        return Normalization(translation=translation, pixel=(w / 2.0, h / 2.0))
+    return Normalization(translation=translation)
+
+
+def gate_threshold(p: float | None) -> float | None:
+    """Chi-square (2 dof) quantile ``-2 ln(1 - p)`` for a gate probability ``p`` (None: off)."""
+    if p is None:
+        return None
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"gate must be a probability in (0, 1) or None, got {p}")
+    return -2.0 * math.log1p(-p)
+
+
+def _measurements(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    detections: np.ndarray,
+    likelihood: np.ndarray | None,
+    pcutoff: float,
+    marker_names: Sequence[str] | None,
+) -> np.ndarray:
+    det = _labels_in_skeleton_order(detections, skeleton, rig, marker_names).copy()
+    if likelihood is not None:
+        lik = np.asarray(likelihood, dtype=np.float64)
+        want = np.asarray(detections).shape[:3]
+        if lik.shape != want:
+            raise ValueError(f"likelihood must have shape {want} (n_cams, T, M), got {lik.shape}")
+        if marker_names is not None:
+            from ..learning import match_marker_names
+
+            full = np.full(det.shape[:3], np.nan)
+            full[:, :, match_marker_names(marker_names, skeleton)] = lik
+            lik = full
+        with np.errstate(invalid="ignore"):
+            det[~(lik >= pcutoff)] = np.nan
+    det[~np.isfinite(det).all(axis=-1)] = np.nan
+    if not np.isfinite(det).any():
+        raise ValueError(
+            "no detection is usable: every entry is NaN"
+            + (f" or has likelihood < pcutoff = {pcutoff}" if likelihood is not None else "")
+        )
+    return det
+
+
+def _first_pose(
+    rig: CameraRig, skeleton: Skeleton, det: np.ndarray, norm: Normalization
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """Sec. 4.7: fit the first frame (the first with >= 3 points seen by >= 2 cameras)."""
+    seen = (np.isfinite(det[..., 0]).sum(axis=0) >= 2).sum(axis=1)  # (T,)
+    ok = np.flatnonzero(seen >= 3)
+    if ok.size == 0:
+        raise ValueError("no frame has 3 markers detected in at least 2 cameras")
+    f0 = int(ok[0])
+    t0, r0, _ = fit_pose(rig, skeleton, det[:, f0], normalization=norm)
+    return f0, t0, r0
+
+
+def _deterministic(
+    rig: CameraRig, skeleton: Skeleton, det: np.ndarray, norm: Normalization, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame fits of eq. 9 (lengths and offsets fixed), each frame independently."""
+    from ..learning import _fit_frames
+
+    lab_fcm = np.ascontiguousarray(det.transpose(1, 0, 2, 3))
+    t_i, r_i = initial_poses(rig, skeleton, det, norm)
+    bounds = _pose_bounds(skeleton, norm)
+    lo_z = np.array([-np.inf if b[0] is None else b[0] for b in bounds])
+    hi_z = np.array([np.inf if b[1] is None else b[1] for b in bounds])
+    z0 = np.clip(_to_state(t_i, r_i, skeleton, norm), lo_z, hi_z)
+    lim = skeleton.joint_limits
+    lower, upper = np.ascontiguousarray(lim[..., 0]), np.ascontiguousarray(lim[..., 1])
+    params = rig.get_params()
+    length_scale = norm.translation / 50.0
+    z, _, _ = _fit_frames(
+        skeleton, params, lab_fcm, lower, upper, norm, length_scale, z0, lo_z, hi_z,
+        skeleton.bone_lengths, skeleton.marker_offsets, seed,
+    )  # fmt: skip
+    empty = np.zeros((0, 2), np.int64)
+    problem = _native.NativeLearning(
+        skeleton._native, params, lab_fcm, lower, upper, norm._tuple(), empty, empty,
+        length_scale, skeleton.bone_lengths, skeleton.marker_offsets,
+    )  # fmt: skip
+    _, _, _, poses = problem.residuals(np.ascontiguousarray(z.ravel()))
+    return poses[:, :3], poses[:, 3:].reshape(len(poses), skeleton.n_bones, 3)
+
+
+class _Printer:
+    """One line per EM iteration on stderr (or nothing)."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+
+    def __call__(self, iteration: int, delta: float, seconds: float, stats: dict) -> bool:
+        if self.enabled:
+            gated = f", {stats['gated'] // 2} points gated" if stats.get("gated") else ""
+            print(
+                f"EM iteration {iteration:3d}: delta {delta:.4g} ({seconds:.2f} s{gated})",
+                file=sys.stderr,
+                flush=True,
+            )
+        return True
+
+
+def track(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    detections: np.ndarray,
+    *,
+    likelihood: np.ndarray | None = None,
+    pcutoff: float = 0.9,
+    joint_limits: bool = True,
+    max_iter: int = 100,
+    tol: float = 0.05,
+    progress: bool = True,
+    method: str = "ukf",
+    gate: float | None = DEFAULT_GATE,
+    normalization: Normalization | None = None,
+    noise: float = 1e-3,
+    marker_names: Sequence[str] | None = None,
+) -> PoseResult:
+    """Reconstruct the poses of a recording (ACM supp. sec. 4).
+
+    ``method="ukf"`` (default) learns the model parameters by EM (Alg. 11: unscented RTS
+    smoother as E-step, Alg. 12 as M-step, Alg. 13 convergence) and returns the smoothed
+    posterior under the learned parameters. ``method="deterministic"`` fits every frame
+    independently (eq. 9 with bone lengths and marker offsets fixed), for comparison.
+
+    Parameters
+    ----------
+    rig : CameraRig
+        Calibrated cameras (world units = the skeleton's units).
+    skeleton : Skeleton
+        The learned skeleton (:func:`acm_rs.learn_skeleton`).
+    detections : array_like, shape (n_cams, T, n_markers, 2)
+        2D marker detections in pixels, NaN where missing; markers in skeleton order unless
+        ``marker_names`` maps the columns by name.
+    likelihood : array_like, shape (n_cams, T, n_markers), optional
+        Detection confidence (DeepLabCut likelihood); entries below ``pcutoff`` are missing.
+    pcutoff : float
+        Confidence threshold (0.9 as in the paper).
+    joint_limits : bool
+        Enforce joint-angle limits through the erf map of Alg. 10.
+    max_iter, tol : int, float
+        EM stops after ``max_iter`` iterations or when the mean relative parameter change of
+        Alg. 13 falls below ``tol`` (the paper's 100 and 0.05).
+    progress : bool
+        Print one line per EM iteration to stderr.
+    gate : float or None
+        Innovation gate against confident outliers: an image point whose innovation lies
+        outside this probability mass of its predicted distribution is ignored in that frame
+        (unless more than half of the frame's points would be; see ``docs/tracking.md``).
+        None disables it.
+    normalization : Normalization, optional
+        Sec. 3.3 constants (default: :func:`default_normalization`).
+    noise : float
+        Initial diagonal of ``V0``, ``V_z`` and ``V_x`` (sec. 4.7: 0.001).
+    marker_names : sequence of str, optional
+        Names of the detection columns, mapped to skeleton markers (DeepLabCut body parts,
+        ``marker_<name>_start`` and ``spot_<name>`` spellings accepted).
+
+    Returns
+    -------
+    PoseResult
+        Joints ``(T, J, 3)`` with posterior std, markers, poses, state moments, EM history.
+
+    Raises
+    ------
+    ValueError
+        Shape mismatches, unknown marker names, no usable detection, bad options.
+    acm_rs.AcmNumericalError
+        A covariance that is not positive definite (e.g. a user-supplied ``noise`` <= 0).
+    """
+    t_start = time.perf_counter()
+    if method not in ("ukf", "deterministic"):
+        raise ValueError(f"method must be 'ukf' or 'deterministic', got {method!r}")
+    if max_iter < 1:
+        raise ValueError(f"max_iter must be >= 1, got {max_iter}")
+    if not (math.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be > 0, got {tol}")
+    if not (math.isfinite(noise) and noise > 0):
+        raise ValueError(f"noise must be > 0, got {noise}")
+    det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
+    n_frames = det.shape[1]
+    norm = normalization or default_normalization(rig, skeleton)
+    sm = StateMap(skeleton, norm, joint_limits)
+    if method == "deterministic":
+        t, r = _deterministic(rig, skeleton, det, norm)
+        joints, markers = skeleton.forward(t, r)
+        result = PoseResult(
+            skeleton=skeleton, rig=rig, state_map=sm, joints=joints,
+            joints_std=np.zeros_like(joints), markers=markers, t=t, r=r,
+            state_mean=sm.from_pose(t, r), state_cov=None, detections=det,
+            info={"method": "deterministic", "seconds": time.perf_counter() - t_start},
+        )  # fmt: skip
+        if progress:
+            print(result.summary(), file=sys.stderr)
+        return result
+
+    f0, t0, r0 = _first_pose(rig, skeleton, det, norm)
+    mu0 = sm.from_pose(t0, r0)
+    x = norm.normalize_pixels(det).transpose(1, 0, 2, 3)  # (T, C, M, 2)
+    lim = skeleton.joint_limits
+    native = _native.NativeTracker(
+        skeleton._native, rig.get_params(), np.ascontiguousarray(lim[..., 0]),
+        np.ascontiguousarray(lim[..., 1]), norm._tuple(), bool(joint_limits),
+        np.ascontiguousarray(x),
+    )  # fmt: skip
+    n = native.n_state
+    eye = np.eye(n) * noise
+    n_x = x[0].size
+    t_init = time.perf_counter() - t_start
+    params, history, converged, interrupted = native.run_em(
+        mu0, eye, eye.copy(), np.full(n_x, noise), int(max_iter), float(tol),
+        gate_threshold(gate), _Printer(progress),
+    )  # fmt: skip
+    poses, joints, markers, joints_std, markers_std = native.posterior()
+    means, covs = native.means(), native.covs()
+    mask = native.mask().transpose(1, 0, 2, 3)[..., 0]  # (C, T, M)
+    t = poses[:, :3]
+    r = poses[:, 3:].reshape(n_frames, skeleton.n_bones, 3)
+    result = PoseResult(
+        skeleton=skeleton, rig=rig, state_map=sm, joints=joints, joints_std=joints_std,
+        markers=markers, t=t, r=r, state_mean=means[1:], state_cov=covs[1:], detections=det,
+        em_history=history,
+        info={
+            "method": "ukf", "converged": bool(converged), "interrupted": bool(interrupted),
+            "iterations": len(history), "tol": float(tol), "gate": gate,
+            "params": params, "status": mask, "markers_std": markers_std,
+            "first_frame": f0, "mu0_init": mu0, "normalization": norm,
+            "seconds_init": t_init, "seconds": time.perf_counter() - t_start,
+        },
+    )  # fmt: skip
+    if interrupted:
+        print(
+            "EM interrupted (Ctrl-C); returning the posterior under the last parameters",
+            file=sys.stderr,
+        )
+    if progress:
+        print(result.summary(), file=sys.stderr)
+    return result

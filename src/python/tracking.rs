@@ -1,0 +1,278 @@
+//! Bindings of the tracker (`crate::tracking`): UKF / RTS smoother / EM with the GIL released;
+//! the progress callback and Ctrl-C checks run between EM iterations with the GIL held.
+
+use super::error::to_py;
+use super::{alloc, cameras_from, norm_from, out, view, Arr, Out, PySkeleton};
+use crate::limits::StateMap;
+use crate::tracking::{moments, EmOptions, Params, SkeletonEmission, Tracker};
+use numpy::{PyArray1, PyArrayDyn, PyArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+/// The tracker of one recording (skeleton emission, measurements, last posterior).
+#[pyclass(name = "NativeTracker", module = "acm_rs._native")]
+pub(super) struct PyTracker {
+    inner: Tracker<SkeletonEmission>,
+}
+
+type ParamArrays<'py> = (Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>);
+
+impl PyTracker {
+    fn params(&self, p: &ParamArrays<'_>) -> PyResult<Params> {
+        let n = self.inner.emission().map.n_state();
+        let n_x = crate::tracking::Emission::n_meas(self.inner.emission());
+        Ok(Params {
+            mu0: view(&p.0, "mu0", &[Some(n)])?.to_vec(),
+            v0: view(&p.1, "V0", &[Some(n), Some(n)])?.to_vec(),
+            vz: view(&p.2, "Vz", &[Some(n), Some(n)])?.to_vec(),
+            vx: view(&p.3, "Vx_diag", &[Some(n_x)])?.to_vec(),
+        })
+    }
+}
+
+fn params_out<'py>(py: Python<'py>, p: Params) -> PyResult<Bound<'py, PyDict>> {
+    let n = p.mu0.len();
+    let n_x = p.vx.len();
+    let d = PyDict::new(py);
+    d.set_item("mu0", out(py, p.mu0, &[n])?)?;
+    d.set_item("V0", out(py, p.v0, &[n, n])?)?;
+    d.set_item("Vz", out(py, p.vz, &[n, n])?)?;
+    d.set_item("Vx_diag", out(py, p.vx, &[n_x])?)?;
+    Ok(d)
+}
+
+#[pymethods]
+impl PyTracker {
+    /// `x (T, n_cams, M, 2)` normalised pixels (eq. 11), NaN = missing.
+    #[new]
+    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        skeleton: &PySkeleton,
+        params: Arr<'_>,
+        lower: Arr<'_>,
+        upper: Arr<'_>,
+        norm: (f64, f64, f64, f64),
+        joint_limits: bool,
+        x: Arr<'_>,
+    ) -> PyResult<Self> {
+        let sk = skeleton.inner.clone();
+        let cams = cameras_from(&params)?;
+        let nb = sk.n_bones();
+        let lo = view(&lower, "lower", &[Some(nb), Some(3)])?;
+        let hi = view(&upper, "upper", &[Some(nb), Some(3)])?;
+        let norm = norm_from(norm.0, norm.1, norm.2, norm.3)?;
+        let map = StateMap::new(nb, lo, hi, &norm, joint_limits).map_err(to_py)?;
+        let xs = view(
+            &x,
+            "x",
+            &[None, Some(cams.len()), Some(sk.n_markers()), Some(2)],
+        )?
+        .to_vec();
+        let em = SkeletonEmission::new(sk, cams, map, norm).map_err(to_py)?;
+        let inner = Tracker::new(em, xs).map_err(to_py)?;
+        Ok(Self { inner })
+    }
+
+    #[getter]
+    fn n_state(&self) -> usize {
+        self.inner.emission().map.n_state()
+    }
+    #[getter]
+    fn n_frames(&self) -> usize {
+        self.inner.n_frames()
+    }
+
+    /// Runs Alg. 11 then a final E-step. `callback(iteration, delta, seconds, stats_dict)` is
+    /// called after every iteration with the GIL held and may return `False` to stop; Ctrl-C
+    /// stops the run between iterations (the result is returned with `interrupted = True`).
+    /// Returns `(params dict, history list of dicts, converged, interrupted)`.
+    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn run_em<'py>(
+        &mut self,
+        py: Python<'py>,
+        mu0: Arr<'py>,
+        v0: Arr<'py>,
+        vz: Arr<'py>,
+        vx: Arr<'py>,
+        max_iter: usize,
+        tol: f64,
+        gate: Option<f64>,
+        callback: Option<Py<PyAny>>,
+    ) -> PyResult<(Bound<'py, PyDict>, Vec<Bound<'py, PyDict>>, bool, bool)> {
+        let init = self.params(&(mu0, v0, vz, vx))?;
+        let opts = EmOptions {
+            max_iter,
+            tol,
+            gate,
+        };
+        let mut py_err: Option<PyErr> = None;
+        let inner = &mut self.inner;
+        let res = py.detach(|| {
+            inner.run_em(init, &opts, |it| {
+                Python::attach(|py| {
+                    if let Err(e) = py.check_signals() {
+                        py_err = Some(e);
+                        return false;
+                    }
+                    let Some(cb) = &callback else { return true };
+                    let stats = PyDict::new(py);
+                    let fill = || -> PyResult<bool> {
+                        stats.set_item("used", it.stats.used)?;
+                        stats.set_item("gated", it.stats.gated)?;
+                        stats.set_item("invisible", it.stats.invisible)?;
+                        let r = cb.call1(py, (it.iteration, it.delta, it.seconds, stats))?;
+                        Ok(r.is_none(py) || r.is_truthy(py)?)
+                    };
+                    match fill() {
+                        Ok(go) => go,
+                        Err(e) => {
+                            py_err = Some(e);
+                            false
+                        }
+                    }
+                })
+            })
+        });
+        if let Some(e) = py_err {
+            // Ctrl-C: keep the results (the run ended with a final E-step) and report it in
+            // `interrupted`; any other error from the callback propagates.
+            if !e.is_instance_of::<pyo3::exceptions::PyKeyboardInterrupt>(py) {
+                return Err(e);
+            }
+        }
+        let outcome = res.map_err(to_py)?;
+        let history = outcome
+            .history
+            .iter()
+            .map(|it| {
+                let d = PyDict::new(py);
+                d.set_item("iteration", it.iteration)?;
+                d.set_item("delta", it.delta)?;
+                d.set_item("seconds", it.seconds)?;
+                d.set_item("used", it.stats.used)?;
+                d.set_item("gated", it.stats.gated)?;
+                d.set_item("invisible", it.stats.invisible)?;
+                d.set_item("gate_skipped_frames", it.stats.gate_skipped_frames)?;
+                Ok(d)
+            })
+            .collect::<PyResult<Vec<_>>>()?;
+        Ok((
+            params_out(py, outcome.params)?,
+            history,
+            outcome.converged,
+            outcome.interrupted,
+        ))
+    }
+
+    /// One E-step (filter + smoother) with the given parameters → stats dict.
+    #[pyo3(signature = (mu0, v0, vz, vx, gate=None, smooth=true))]
+    #[allow(clippy::too_many_arguments)]
+    fn e_step<'py>(
+        &mut self,
+        py: Python<'py>,
+        mu0: Arr<'py>,
+        v0: Arr<'py>,
+        vz: Arr<'py>,
+        vx: Arr<'py>,
+        gate: Option<f64>,
+        smooth: bool,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let p = self.params(&(mu0, v0, vz, vx))?;
+        let inner = &mut self.inner;
+        let s = py
+            .detach(|| {
+                if smooth {
+                    inner.e_step(&p, gate)
+                } else {
+                    inner.filter(&p, gate)
+                }
+            })
+            .map_err(to_py)?;
+        let d = PyDict::new(py);
+        d.set_item("used", s.used)?;
+        d.set_item("gated", s.gated)?;
+        d.set_item("invisible", s.invisible)?;
+        Ok(d)
+    }
+
+    /// The M-step from the last E-step (Alg. 12) → params dict.
+    fn m_step<'py>(
+        &self,
+        py: Python<'py>,
+        mu0: Arr<'py>,
+        v0: Arr<'py>,
+        vz: Arr<'py>,
+        vx: Arr<'py>,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let prev = self.params(&(mu0, v0, vz, vx))?;
+        let inner = &self.inner;
+        let p = py.detach(|| inner.m_step(&prev)).map_err(to_py)?;
+        params_out(py, p)
+    }
+
+    /// `(T+1, n)` posterior means of the last E-step (row 0 = `z_0`).
+    fn means<'py>(&self, py: Python<'py>) -> PyResult<Out<'py>> {
+        let n = self.n_state();
+        let a = alloc(py, &[self.inner.n_frames() + 1, n]);
+        a.readwrite()
+            .as_slice_mut()
+            .expect("contiguous")
+            .copy_from_slice(self.inner.means());
+        Ok(a)
+    }
+
+    /// `(T+1, n, n)` posterior covariances of the last E-step.
+    fn covs<'py>(&self, py: Python<'py>) -> PyResult<Out<'py>> {
+        let n = self.n_state();
+        let a = alloc(py, &[self.inner.n_frames() + 1, n, n]);
+        {
+            let mut w = a.readwrite();
+            let dst = w.as_slice_mut().expect("contiguous");
+            let src = self.inner.covs();
+            py.detach(|| dst.copy_from_slice(src));
+        }
+        Ok(a)
+    }
+
+    /// `(T, n_cams, M, 2)` status of each measurement entry in the last E-step
+    /// (0 missing, 1 used, 2 gated, 3 not predictable).
+    fn mask<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<u8>>> {
+        let em = self.inner.emission();
+        PyArray1::from_slice(py, self.inner.mask()).reshape(vec![
+            self.inner.n_frames(),
+            em.cameras.len(),
+            em.skeleton.n_markers(),
+            2,
+        ])
+    }
+
+    /// Posterior of frames `1..T` → `(poses (T, n_pose), joints (T, J, 3), markers (T, M, 3),
+    /// joints_std (T, J, 3), markers_std (T, M, 3))`.
+    #[allow(clippy::type_complexity)]
+    fn posterior<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(Out<'py>, Out<'py>, Out<'py>, Out<'py>, Out<'py>)> {
+        let em = self.inner.emission();
+        let n = em.map.n_state();
+        let (means, covs) = (&self.inner.means()[n..], &self.inner.covs()[n * n..]);
+        let p = py
+            .detach(|| moments::posterior_poses(em, means, covs))
+            .map_err(to_py)?;
+        let t = self.inner.n_frames();
+        let (nj, nm, np) = (
+            em.skeleton.n_joints(),
+            em.skeleton.n_markers(),
+            em.skeleton.n_pose(),
+        );
+        Ok((
+            out(py, p.poses, &[t, np])?,
+            out(py, p.joints, &[t, nj, 3])?,
+            out(py, p.markers, &[t, nm, 3])?,
+            out(py, p.joints_std, &[t, nj, 3])?,
+            out(py, p.markers_std, &[t, nm, 3])?,
+        ))
+    }
+}

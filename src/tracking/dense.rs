@@ -1,0 +1,160 @@
+//! Small dense linear-algebra helpers for the tracker: Cholesky with a jitter fallback,
+//! symmetric rank-k products through `matrixmultiply` (AVX2/FMA kernels), triangular solves.
+//!
+//! Matrices are flat `Vec<f64>`/slices; covariances are symmetric so row- and column-major
+//! coincide. nalgebra handles the small factorisations (n_state ≤ ~100).
+
+use crate::error::{AcmError, Result};
+use nalgebra::{DMatrix, DVector};
+
+/// Relative jitter levels tried when a covariance is not numerically positive definite
+/// (multiples of the mean diagonal entry).
+const JITTER: [f64; 4] = [1e-12, 1e-10, 1e-8, 1e-6];
+
+/// Lower Cholesky factor of the symmetric `n × n` matrix `a` (flat), with a jitter fallback.
+///
+/// The matrix is symmetrised first. If the plain factorisation fails, `ε · mean(diag) · I` is
+/// added for increasing `ε` up to 1e-6.
+///
+/// # Errors
+/// [`AcmError::Numerical`] naming `what` if the matrix is not positive definite even with the
+/// largest jitter, or contains non-finite values.
+pub fn cholesky(a: &[f64], n: usize, what: &dyn Fn() -> String) -> Result<DMatrix<f64>> {
+    let mut m = DMatrix::from_column_slice(n, n, a);
+    if m.iter().any(|v| !v.is_finite()) {
+        return Err(AcmError::Numerical(format!(
+            "{} contains NaN or infinity",
+            what()
+        )));
+    }
+    symmetrize(&mut m);
+    if let Some(c) = m.clone().cholesky() {
+        return Ok(c.unpack());
+    }
+    let scale = (m.trace() / n as f64).abs().max(f64::MIN_POSITIVE);
+    for eps in JITTER {
+        let mut j = m.clone();
+        for i in 0..n {
+            j[(i, i)] += eps * scale;
+        }
+        if let Some(c) = j.cholesky() {
+            return Ok(c.unpack());
+        }
+    }
+    let min_diag = (0..n).map(|i| m[(i, i)]).fold(f64::INFINITY, f64::min);
+    Err(AcmError::Numerical(format!(
+        "{} is not positive definite (smallest diagonal entry {min_diag:.3e}, even with a \
+         jitter of 1e-6 × mean diagonal)",
+        what()
+    )))
+}
+
+/// `m ← (m + mᵀ) / 2`.
+pub fn symmetrize(m: &mut DMatrix<f64>) {
+    let n = m.nrows();
+    for i in 0..n {
+        for j in 0..i {
+            let v = 0.5 * (m[(i, j)] + m[(j, i)]);
+            m[(i, j)] = v;
+            m[(j, i)] = v;
+        }
+    }
+}
+
+/// Solves `L Lᵀ x = b` in place for a lower Cholesky factor `l`.
+pub fn chol_solve_vec(l: &DMatrix<f64>, b: &mut DVector<f64>) {
+    l.solve_lower_triangular_mut(b);
+    l.tr_solve_lower_triangular_mut(b);
+}
+
+/// Solves `L Lᵀ X = B` in place for a lower Cholesky factor `l` (columns of `b`).
+pub fn chol_solve_mat(l: &DMatrix<f64>, b: &mut DMatrix<f64>) {
+    l.solve_lower_triangular_mut(b);
+    l.tr_solve_lower_triangular_mut(b);
+}
+
+/// `c ← c + a aᵀ` for `a` stored row-major as `rows × k` (each row one vector), `c` the
+/// `rows × rows` column-major result. Uses the `matrixmultiply` kernels; the two column
+/// halves of `c` are computed in parallel.
+pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64]) {
+    debug_assert_eq!(a.len(), rows * k);
+    debug_assert_eq!(c.len(), rows * rows);
+    if rows == 0 || k == 0 {
+        return;
+    }
+    let half = rows / 2;
+    let (c0, c1) = c.split_at_mut(half * rows);
+    let gemm = |cols: usize, col0: usize, out: &mut [f64]| {
+        if cols == 0 {
+            return;
+        }
+        // C[:, col0..col0+cols] += A · A[col0..col0+cols, :]ᵀ with A row-major (rs = k,
+        // cs = 1); Aᵀ's block has rs = 1, cs = k; C column-major (rs = 1, cs = rows).
+        // SAFETY: the pointers and strides describe in-bounds views of `a` and `out`
+        // (`out` holds exactly `cols` columns of `rows` entries).
+        unsafe {
+            matrixmultiply::dgemm(
+                rows,
+                k,
+                cols,
+                1.0,
+                a.as_ptr(),
+                k as isize,
+                1,
+                a.as_ptr().add(col0 * k),
+                1,
+                k as isize,
+                1.0,
+                out.as_mut_ptr(),
+                1,
+                rows as isize,
+            );
+        }
+    };
+    if rows * rows * k > 200_000 {
+        rayon::join(|| gemm(half, 0, c0), || gemm(rows - half, half, c1));
+    } else {
+        gemm(half, 0, c0);
+        gemm(rows - half, half, c1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gram_matches_naive_product() {
+        let (rows, k) = (7, 13);
+        let a: Vec<f64> = (0..rows * k).map(|i| ((i * 31 % 17) as f64) - 8.0).collect();
+        let mut c = vec![0.0; rows * rows];
+        for i in 0..rows {
+            c[i * rows + i] = 1.0;
+        }
+        add_gram_rows(&a, rows, k, &mut c);
+        for i in 0..rows {
+            for j in 0..rows {
+                let want: f64 = (0..k).map(|l| a[i * k + l] * a[j * k + l]).sum::<f64>()
+                    + if i == j { 1.0 } else { 0.0 };
+                assert!((c[j * rows + i] - want).abs() < 1e-9);
+            }
+        }
+    }
+
+    #[test]
+    fn cholesky_jitter_and_errors() {
+        // Rank-deficient PSD matrix: plain Cholesky may fail, the jitter makes it work.
+        let v = [1.0, 2.0, 3.0];
+        let a: Vec<f64> = (0..9).map(|i| v[i / 3] * v[i % 3]).collect();
+        let l = cholesky(&a, 3, &|| "test".into()).unwrap();
+        let back = &l * l.transpose();
+        for i in 0..9 {
+            assert!((back[(i % 3, i / 3)] - a[i]).abs() < 1e-5);
+        }
+        let neg = [1.0, 0.0, 0.0, -1.0];
+        let e = cholesky(&neg, 2, &|| "V_z".into()).unwrap_err();
+        assert!(matches!(e, AcmError::Numerical(ref s) if s.contains("V_z")));
+        let nan = [f64::NAN, 0.0, 0.0, 1.0];
+        assert!(cholesky(&nan, 2, &|| "x".into()).is_err());
+    }
+}

@@ -1,0 +1,331 @@
+//! Probabilistic pose estimation (ACM supp. sec. 4): the unscented Kalman filter (Alg. 5-7),
+//! the unscented RTS smoother (Alg. 8-9) and expectation maximisation (Alg. 11-13) for the
+//! state-space model `z_t = z_{t-1} + ε_z`, `x_t = g(z_t) + ε_x` (eqs. 49-50).
+//!
+//! | module | paper |
+//! |---|---|
+//! | [`model`] | Alg. 4 + Alg. 10 (emission `g`), eq. 50 |
+//! | [`filter`] | Alg. 5-7 (UKF, missing measurements), innovation gate |
+//! | [`smoother`] | Alg. 8-9 (RTS), eqs. 58-65/79 (transition statistics) |
+//! | [`mstep`] | Alg. 12-13, eqs. 77-87 |
+//! | [`moments`] | posterior of joints and markers (unscented transform of FK) |
+//!
+//! Memory: the E-step keeps `(T+1)` means and covariances (`8 n² (T+1)` bytes: 2 GB for the
+//! rat's `n = 50` and `T = 10⁵`) and one status byte per measurement entry.
+
+pub mod dense;
+pub mod filter;
+pub mod model;
+pub mod moments;
+pub mod mstep;
+pub mod smoother;
+#[cfg(test)]
+mod tests;
+
+use crate::error::{ensure_len, AcmError, Result};
+pub use filter::{status, FilterStats};
+pub use model::{Emission, LinearEmission, SkeletonEmission};
+pub use mstep::relative_change;
+use std::time::Instant;
+
+/// Model parameters `Θ = {μ0, V0, V_z, V_x}` (sec. 4.1); `V_x` is diagonal.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Params {
+    /// Mean of `z_0` (`n`).
+    pub mu0: Vec<f64>,
+    /// Covariance of `z_0` (`n × n`).
+    pub v0: Vec<f64>,
+    /// Transition noise covariance (`n × n`).
+    pub vz: Vec<f64>,
+    /// Diagonal of the measurement noise covariance (`n_x`).
+    pub vx: Vec<f64>,
+}
+
+impl Params {
+    /// The initialisation of sec. 4.7: `V0 = V_z = V_x = noise · I` around `mu0`.
+    pub fn initial(mu0: Vec<f64>, n_x: usize, noise: f64) -> Self {
+        let n = mu0.len();
+        let mut eye = vec![0.0; n * n];
+        for i in 0..n {
+            eye[i * n + i] = noise;
+        }
+        Self {
+            mu0,
+            v0: eye.clone(),
+            vz: eye,
+            vx: vec![noise; n_x],
+        }
+    }
+
+    /// Checks lengths and finiteness, and that `V_x > 0` (the covariances are checked by
+    /// their Cholesky factorisation when used).
+    ///
+    /// # Errors
+    /// Shape, non-finite or invalid errors naming the parameter.
+    pub fn validate(&self, n: usize, n_x: usize) -> Result<()> {
+        ensure_len(self.mu0.len(), n, "mu0")?;
+        ensure_len(self.v0.len(), n * n, "V0 (n, n)")?;
+        ensure_len(self.vz.len(), n * n, "V_z (n, n)")?;
+        ensure_len(self.vx.len(), n_x, "diag(V_x)")?;
+        for (v, name) in [
+            (&self.mu0, "mu0"),
+            (&self.v0, "V0"),
+            (&self.vz, "V_z"),
+            (&self.vx, "V_x"),
+        ] {
+            crate::error::ensure_finite(v, name)?;
+        }
+        if let Some(j) = self.vx.iter().position(|&v| v <= 0.0) {
+            return Err(AcmError::Invalid(format!(
+                "V_x must be positive, entry {j} is {}",
+                self.vx[j]
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Options of the EM run (Alg. 11).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EmOptions {
+    /// Maximum number of EM iterations (the authors' `iter_max`, 100).
+    pub max_iter: usize,
+    /// Convergence threshold `ε_tol` of eq. 87 (0.05).
+    pub tol: f64,
+    /// Innovation gate (squared Mahalanobis distance per image point), or `None`.
+    pub gate: Option<f64>,
+}
+
+impl Default for EmOptions {
+    fn default() -> Self {
+        Self {
+            max_iter: 100,
+            tol: 0.05,
+            gate: None,
+        }
+    }
+}
+
+/// One EM iteration, for progress reports and the history.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Iteration {
+    /// 1-based iteration number.
+    pub iteration: usize,
+    /// Mean relative parameter change of Alg. 13.
+    pub delta: f64,
+    /// Wall time of the iteration (E-step + M-step), seconds.
+    pub seconds: f64,
+    /// Counts of the E-step.
+    pub stats: FilterStats,
+}
+
+/// Result of [`Tracker::run_em`].
+#[derive(Debug, Clone)]
+pub struct EmOutcome {
+    /// The learned parameters.
+    pub params: Params,
+    /// Per-iteration record.
+    pub history: Vec<Iteration>,
+    /// Whether `Δ < tol` was reached (false if `max_iter` or the callback stopped it).
+    pub converged: bool,
+    /// Whether the callback asked to stop.
+    pub interrupted: bool,
+}
+
+/// The E-step machinery for one recording: owns the emission model, the measurements and the
+/// posterior moments of the last E-step.
+#[derive(Debug, Clone)]
+pub struct Tracker<E: Emission> {
+    em: E,
+    x: Vec<f64>,
+    n_frames: usize,
+    means: Vec<f64>,
+    covs: Vec<f64>,
+    mask: Vec<u8>,
+    acc: nalgebra::DMatrix<f64>,
+    stats: FilterStats,
+}
+
+impl<E: Emission> Tracker<E> {
+    /// Sets up a tracker for measurements `x` (`T × n_x`, NaN = missing, in the layout of the
+    /// emission: for the skeleton camera, marker, coordinate in normalised pixels).
+    ///
+    /// # Errors
+    /// Shape error if `x` is not a whole number of frames or empty; non-finite error for ±inf.
+    pub fn new(em: E, x: Vec<f64>) -> Result<Self> {
+        let (n, n_x) = (em.n_state(), em.n_meas());
+        if n == 0 || n_x == 0 {
+            return Err(AcmError::Invalid(
+                "the model has an empty state or measurement".into(),
+            ));
+        }
+        if x.is_empty() || x.len() % n_x != 0 {
+            return Err(AcmError::Shape(format!(
+                "measurements: {} values is not a positive multiple of n_x = {n_x}",
+                x.len()
+            )));
+        }
+        if let Some(i) = x.iter().position(|v| v.is_infinite()) {
+            return Err(AcmError::NonFinite(format!(
+                "measurement of frame {} entry {} is infinite (use NaN for missing)",
+                i / n_x,
+                i % n_x
+            )));
+        }
+        let t = x.len() / n_x;
+        Ok(Self {
+            em,
+            mask: vec![status::MISSING; x.len()],
+            x,
+            n_frames: t,
+            means: vec![0.0; (t + 1) * n],
+            covs: vec![0.0; (t + 1) * n * n],
+            acc: nalgebra::DMatrix::zeros(n, n),
+            stats: FilterStats::default(),
+        })
+    }
+
+    /// The emission model.
+    pub fn emission(&self) -> &E {
+        &self.em
+    }
+    /// Number of frames `T`.
+    pub fn n_frames(&self) -> usize {
+        self.n_frames
+    }
+    /// Posterior means of the last E-step, `(T+1) × n` (row 0 = `z_0`).
+    pub fn means(&self) -> &[f64] {
+        &self.means
+    }
+    /// Posterior covariances of the last E-step, `(T+1) × n × n`.
+    pub fn covs(&self) -> &[f64] {
+        &self.covs
+    }
+    /// Status of every measurement entry in the last E-step (`T × n_x`, see [`status`]).
+    pub fn mask(&self) -> &[u8] {
+        &self.mask
+    }
+    /// Counts of the last E-step.
+    pub fn stats(&self) -> FilterStats {
+        self.stats
+    }
+
+    /// Runs the unscented Kalman filter (Alg. 7) only: afterwards [`Self::means`] and
+    /// [`Self::covs`] hold the filtered moments.
+    ///
+    /// # Errors
+    /// Invalid parameters; numerical errors naming the frame.
+    pub fn filter(&mut self, params: &Params, gate: Option<f64>) -> Result<FilterStats> {
+        let (n, n_x) = (self.em.n_state(), self.em.n_meas());
+        params.validate(n, n_x)?;
+        if let Some(g) = gate {
+            if g.is_nan() || g <= 0.0 {
+                return Err(AcmError::Invalid(format!("the gate must be > 0, got {g}")));
+            }
+        }
+        self.means[..n].copy_from_slice(&params.mu0);
+        self.covs[..n * n].copy_from_slice(&params.v0);
+        let mut ws = filter::Workspace::new(n, n_x);
+        let mut stats = FilterStats::default();
+        for t in 0..self.n_frames {
+            let (mh, mt) = self.means.split_at_mut((t + 1) * n);
+            let (ch, ct) = self.covs.split_at_mut((t + 1) * n * n);
+            filter::step(
+                &self.em,
+                params,
+                &mh[t * n..],
+                &ch[t * n * n..],
+                &self.x[t * n_x..(t + 1) * n_x],
+                gate,
+                t,
+                &mut ws,
+                &mut self.mask[t * n_x..(t + 1) * n_x],
+                &mut mt[..n],
+                &mut ct[..n * n],
+                &mut stats,
+            )?;
+        }
+        self.stats = stats;
+        Ok(stats)
+    }
+
+    /// The E-step (Alg. 9): filter, then smooth. Afterwards [`Self::means`] and
+    /// [`Self::covs`] hold the smoothed moments.
+    ///
+    /// # Errors
+    /// As [`Self::filter`].
+    pub fn e_step(&mut self, params: &Params, gate: Option<f64>) -> Result<FilterStats> {
+        let stats = self.filter(params, gate)?;
+        self.acc = smoother::smooth_in_place(
+            &mut self.means,
+            &mut self.covs,
+            &params.vz,
+            self.em.n_state(),
+        )?;
+        Ok(stats)
+    }
+
+    /// The M-step (Alg. 12) from the moments of the last [`Self::e_step`].
+    ///
+    /// # Errors
+    /// Numerical errors for a smoothed covariance that is not positive semi-definite.
+    pub fn m_step(&self, prev: &Params) -> Result<Params> {
+        mstep::m_step(
+            &self.em,
+            &self.means,
+            &self.covs,
+            &self.x,
+            &self.mask,
+            &self.acc,
+            prev,
+        )
+    }
+
+    /// Alg. 11 followed by a final E-step with the learned parameters (sec. 4.7), so that the
+    /// moments afterwards are the smoothed posterior under the returned parameters.
+    ///
+    /// `on_iteration` is called after every iteration; returning `false` stops the run (e.g.
+    /// on Ctrl-C), which still ends with the final E-step.
+    ///
+    /// # Errors
+    /// As [`Self::e_step`] and [`Self::m_step`].
+    pub fn run_em(
+        &mut self,
+        init: Params,
+        opts: &EmOptions,
+        mut on_iteration: impl FnMut(&Iteration) -> bool,
+    ) -> Result<EmOutcome> {
+        let mut params = init;
+        let mut history = Vec::new();
+        let (mut converged, mut interrupted) = (false, false);
+        for k in 1..=opts.max_iter {
+            let t0 = Instant::now();
+            let stats = self.e_step(&params, opts.gate)?;
+            let next = self.m_step(&params)?;
+            let delta = relative_change(&params, &next);
+            params = next;
+            let it = Iteration {
+                iteration: k,
+                delta,
+                seconds: t0.elapsed().as_secs_f64(),
+                stats,
+            };
+            history.push(it);
+            if !on_iteration(&it) {
+                interrupted = true;
+                break;
+            }
+            if delta < opts.tol {
+                converged = true;
+                break;
+            }
+        }
+        self.e_step(&params, opts.gate)?;
+        Ok(EmOutcome {
+            params,
+            history,
+            converged,
+            interrupted,
+        })
+    }
+}

@@ -1,0 +1,123 @@
+//! The emission functions the tracker can use: the skeleton model of Alg. 4 with the state map
+//! of Alg. 10 (eq. 50), and a linear map (for the golden test against the Kalman filter).
+
+use crate::camera::Camera;
+use crate::emission::emission_batch_into;
+use crate::error::{ensure_len, AcmError, Result};
+use crate::limits::StateMap;
+use crate::normalization::Normalization;
+use crate::skeleton::Skeleton;
+
+/// A measurement function `x = g(z)` evaluated for batches of states.
+pub trait Emission: Sync {
+    /// Dimension of the state `n_z`.
+    fn n_state(&self) -> usize;
+    /// Dimension of one measurement `n_x`.
+    fn n_meas(&self) -> usize;
+    /// Writes `g(z)` for each row of `states` (`N × n_z`) into `out` (`N × n_x`). An entry may
+    /// be NaN (e.g. a marker behind a camera); the tracker then treats it as missing.
+    ///
+    /// # Errors
+    /// Shape errors, or non-finite states.
+    fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()>;
+    /// Entries are grouped in consecutive blocks of this size for the innovation gate
+    /// (2 for image points `(u, v)`).
+    fn block(&self) -> usize {
+        1
+    }
+}
+
+/// Alg. 4 ∘ Alg. 10: state → pose → forward kinematics → normalised pixels in every camera.
+/// Measurement layout: camera, marker, coordinate (`n_x = 2 · n_cams · n_markers`).
+#[derive(Debug, Clone)]
+pub struct SkeletonEmission {
+    /// Skeleton with the learned bone lengths and marker offsets.
+    pub skeleton: Skeleton,
+    /// The calibrated cameras.
+    pub cameras: Vec<Camera>,
+    /// State ↔ pose map (Alg. 10).
+    pub map: StateMap,
+    /// Normalisation constants (sec. 3.3).
+    pub norm: Normalization,
+}
+
+impl SkeletonEmission {
+    /// Bundles the model, checking that the state map fits the skeleton.
+    ///
+    /// # Errors
+    /// Shape error if the map was built for another skeleton; invalid error without cameras.
+    pub fn new(
+        skeleton: Skeleton,
+        cameras: Vec<Camera>,
+        map: StateMap,
+        norm: Normalization,
+    ) -> Result<Self> {
+        ensure_len(map.n_pose(), skeleton.n_pose(), "state map pose length")?;
+        norm.validate()?;
+        if cameras.is_empty() {
+            return Err(AcmError::Invalid("the tracker needs at least one camera".into()));
+        }
+        if skeleton.n_markers() == 0 {
+            return Err(AcmError::Invalid("the skeleton has no markers".into()));
+        }
+        Ok(Self {
+            skeleton,
+            cameras,
+            map,
+            norm,
+        })
+    }
+}
+
+impl Emission for SkeletonEmission {
+    fn n_state(&self) -> usize {
+        self.map.n_state()
+    }
+    fn n_meas(&self) -> usize {
+        2 * self.cameras.len() * self.skeleton.n_markers()
+    }
+    fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
+        emission_batch_into(
+            &self.skeleton,
+            &self.cameras,
+            &self.map,
+            &self.norm,
+            states,
+            out,
+        )
+    }
+    fn block(&self) -> usize {
+        2
+    }
+}
+
+/// `x = H z + b` with a dense `H` (`n_x × n_z`, row-major).
+#[derive(Debug, Clone)]
+pub struct LinearEmission {
+    /// Row-major `n_x × n_z` matrix.
+    pub h: Vec<f64>,
+    /// Offset `(n_x,)`.
+    pub b: Vec<f64>,
+    /// State dimension.
+    pub n_z: usize,
+}
+
+impl Emission for LinearEmission {
+    fn n_state(&self) -> usize {
+        self.n_z
+    }
+    fn n_meas(&self) -> usize {
+        self.b.len()
+    }
+    fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
+        let (nz, nx) = (self.n_z, self.b.len());
+        ensure_len(out.len(), states.len() / nz * nx, "emission output")?;
+        for (z, o) in states.chunks_exact(nz).zip(out.chunks_exact_mut(nx)) {
+            for (j, oj) in o.iter_mut().enumerate() {
+                let row = &self.h[j * nz..(j + 1) * nz];
+                *oj = self.b[j] + row.iter().zip(z).map(|(a, b)| a * b).sum::<f64>();
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,121 @@
+//! The M-step (ACM supp. Alg. 12, eqs. 77-81) and the convergence measure (Alg. 13).
+
+use super::dense::cholesky;
+use super::filter::{sigma_points, status};
+use super::model::Emission;
+use super::Params;
+use crate::error::Result;
+use nalgebra::DMatrix;
+use rayon::prelude::*;
+
+/// Frames per parallel work item (fixed, so that the reduction order is deterministic).
+const CHUNK: usize = 4;
+
+/// New parameters from the smoothed moments: `μ0 = μ̂_0`, `V0 = V̂_0` (eqs. 77-78),
+/// `V_z = acc / T` (eq. 79, `acc` from the smoother) and the diagonal `V_x` of eq. 81 from the
+/// sigma points of every `N(μ̂_t, V̂_t)` through `g`, counting only the entries used in the
+/// E-step (`mask == USED`). Entries never used keep their previous value.
+///
+/// # Errors
+/// Numerical error if a smoothed covariance is not positive semi-definite; emission errors.
+pub(crate) fn m_step<E: Emission + ?Sized>(
+    em: &E,
+    means: &[f64],
+    covs: &[f64],
+    x: &[f64],
+    mask: &[u8],
+    acc: &DMatrix<f64>,
+    prev: &Params,
+) -> Result<Params> {
+    let n = em.n_state();
+    let n_x = em.n_meas();
+    let t_len = x.len() / n_x;
+    let mu0 = means[..n].to_vec();
+    let v0 = covs[..n * n].to_vec();
+    let vz: Vec<f64> = acc.iter().map(|v| v / t_len.max(1) as f64).collect();
+    // Eq. 81, in parallel over chunks of frames, reduced in chunk order.
+    let partial: Vec<Result<(Vec<f64>, Vec<f64>)>> = (0..t_len.div_ceil(CHUNK))
+        .into_par_iter()
+        .map(|c| {
+            let mut sums = vec![0.0; n_x];
+            let mut counts = vec![0.0; n_x];
+            let mut sigma = vec![0.0; 2 * n * n];
+            let mut g = vec![0.0; 2 * n * n_x];
+            for t in c * CHUNK..((c + 1) * CHUNK).min(t_len) {
+                let m = &mask[t * n_x..(t + 1) * n_x];
+                if !m.contains(&status::USED) {
+                    continue;
+                }
+                let k = t + 1; // moments index (0 = z_0)
+                let l = cholesky(&covs[k * n * n..(k + 1) * n * n], n, &|| {
+                    format!("the smoothed state covariance of frame {t}")
+                })?;
+                sigma_points(&means[k * n..(k + 1) * n], &l, &mut sigma);
+                em.eval_batch(&sigma, &mut g)?;
+                let xt = &x[t * n_x..(t + 1) * n_x];
+                for j in 0..n_x {
+                    if m[j] != status::USED {
+                        continue;
+                    }
+                    let (mut s, mut cnt) = (0.0, 0usize);
+                    for i in 0..2 * n {
+                        let v = g[i * n_x + j];
+                        if v.is_finite() {
+                            s += (xt[j] - v) * (xt[j] - v);
+                            cnt += 1;
+                        }
+                    }
+                    if cnt > 0 {
+                        sums[j] += s / cnt as f64;
+                        counts[j] += 1.0;
+                    }
+                }
+            }
+            Ok((sums, counts))
+        })
+        .collect();
+    let mut sums = vec![0.0; n_x];
+    let mut counts = vec![0.0; n_x];
+    for p in partial {
+        let (s, c) = p?;
+        for j in 0..n_x {
+            sums[j] += s[j];
+            counts[j] += c[j];
+        }
+    }
+    let vx = (0..n_x)
+        .map(|j| {
+            if counts[j] > 0.0 {
+                // A floor keeps V_x invertible if a measurement is fitted exactly.
+                (sums[j] / counts[j]).max(1e-14)
+            } else {
+                prev.vx[j]
+            }
+        })
+        .collect();
+    Ok(Params { mu0, v0, vz, vx })
+}
+
+/// Alg. 13: the mean relative change of `(μ0, diag V0, diag V_z, diag V_x)` between two
+/// parameter sets (eqs. 82-87). An entry that is exactly zero before and after counts as no
+/// change.
+pub fn relative_change(prev: &Params, next: &Params) -> f64 {
+    let n = prev.mu0.len();
+    let rel = |a: f64, b: f64| {
+        if a == b {
+            0.0
+        } else {
+            ((b - a) / a).abs()
+        }
+    };
+    let mut sum = 0.0;
+    for i in 0..n {
+        sum += rel(prev.mu0[i], next.mu0[i]);
+        sum += rel(prev.v0[i * n + i], next.v0[i * n + i]);
+        sum += rel(prev.vz[i * n + i], next.vz[i * n + i]);
+    }
+    for (a, b) in prev.vx.iter().zip(&next.vx) {
+        sum += rel(*a, *b);
+    }
+    sum / (3 * n + prev.vx.len()) as f64
+}

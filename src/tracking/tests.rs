@@ -1,0 +1,192 @@
+//! Golden tests: on a linear-Gaussian model the UKF/RTS must equal the closed-form Kalman
+//! filter and RTS smoother (written here in the textbook covariance form with `S⁻¹`).
+
+use super::*;
+use nalgebra::{DMatrix, DVector};
+
+struct Lcg(u64);
+impl Lcg {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((self.0 >> 11) as f64 / (1u64 << 53) as f64) * 2.0 - 1.0
+    }
+}
+
+fn linear_problem(seed: u64) -> (LinearEmission, Vec<f64>, Params, usize, usize, usize) {
+    let (n, n_x, t) = (3, 6, 40);
+    let mut rng = Lcg(seed);
+    let h: Vec<f64> = (0..n_x * n).map(|_| rng.next()).collect();
+    let b: Vec<f64> = (0..n_x).map(|_| rng.next()).collect();
+    let em = LinearEmission { h, b, n_z: n };
+    let mut z = vec![0.2, -0.1, 0.3];
+    let mut x = vec![0.0; t * n_x];
+    let mut out = vec![0.0; n_x];
+    for k in 0..t {
+        for v in z.iter_mut() {
+            *v += 0.1 * rng.next();
+        }
+        em.eval_batch(&z, &mut out).unwrap();
+        for j in 0..n_x {
+            x[k * n_x + j] = out[j] + 0.05 * rng.next();
+        }
+    }
+    // Missing entries, a frame with nothing, and a frame with one entry.
+    for k in 0..t {
+        for j in 0..n_x {
+            if (k * 7 + j * 3) % 5 == 0 {
+                x[k * n_x + j] = f64::NAN;
+            }
+        }
+    }
+    for j in 0..n_x {
+        x[10 * n_x + j] = f64::NAN;
+        if j > 0 {
+            x[11 * n_x + j] = f64::NAN;
+        }
+    }
+    let mut p = Params::initial(vec![0.1, 0.0, 0.2], n_x, 0.01);
+    p.vz[1] = 0.002; // correlated transition noise
+    p.vz[n] = 0.002;
+    p.vx = (0..n_x).map(|j| 0.002 + 0.001 * j as f64).collect();
+    (em, x, p, n, n_x, t)
+}
+
+/// Textbook Kalman filter + RTS smoother; returns smoothed (means, covs) for t = 0..T.
+fn kalman_rts(
+    em: &LinearEmission,
+    x: &[f64],
+    p: &Params,
+    n: usize,
+    n_x: usize,
+    t_len: usize,
+) -> (Vec<DVector<f64>>, Vec<DMatrix<f64>>) {
+    let h = DMatrix::from_row_slice(n_x, n, &em.h);
+    let vz = DMatrix::from_row_slice(n, n, &p.vz);
+    let mut mf = vec![DVector::from_column_slice(&p.mu0)];
+    let mut vf = vec![DMatrix::from_row_slice(n, n, &p.v0)];
+    for k in 0..t_len {
+        let mp = mf[k].clone();
+        let pp = &vf[k] + &vz;
+        let idx: Vec<usize> = (0..n_x).filter(|&j| !x[k * n_x + j].is_nan()).collect();
+        if idx.is_empty() {
+            mf.push(mp);
+            vf.push(pp);
+            continue;
+        }
+        let hs = DMatrix::from_fn(idx.len(), n, |a, c| h[(idx[a], c)]);
+        let r = DMatrix::from_fn(idx.len(), idx.len(), |a, c| {
+            if a == c {
+                p.vx[idx[a]]
+            } else {
+                0.0
+            }
+        });
+        let s = &hs * &pp * hs.transpose() + r;
+        let k_gain = &pp * hs.transpose() * s.try_inverse().unwrap();
+        let nu = DVector::from_fn(idx.len(), |a, _| {
+            x[k * n_x + idx[a]] - em.b[idx[a]] - (hs.row(a) * &mp)[0]
+        });
+        mf.push(&mp + &k_gain * nu);
+        vf.push(&pp - &k_gain * &hs * &pp);
+    }
+    let mut ms = mf.clone();
+    let mut vs = vf.clone();
+    for k in (0..t_len).rev() {
+        let pp = &vf[k] + &vz;
+        let g = &vf[k] * pp.clone().try_inverse().unwrap();
+        ms[k] = &mf[k] + &g * (&ms[k + 1] - &mf[k]);
+        vs[k] = &vf[k] + &g * (&vs[k + 1] - &pp) * g.transpose();
+    }
+    (ms, vs)
+}
+
+#[test]
+fn ukf_rts_equals_kalman_on_linear_model() {
+    let (em, x, p, n, n_x, t_len) = linear_problem(7);
+    let (ms, vs) = kalman_rts(&em, &x, &p, n, n_x, t_len);
+    let mut tr = Tracker::new(em, x).unwrap();
+    tr.e_step(&p, None).unwrap();
+    for k in 0..=t_len {
+        for i in 0..n {
+            let got = tr.means()[k * n + i];
+            assert!((got - ms[k][i]).abs() < 1e-10, "mean t={k} i={i}");
+            for j in 0..n {
+                let got = tr.covs()[k * n * n + j * n + i];
+                assert!((got - vs[k][(i, j)]).abs() < 1e-10, "cov t={k}");
+            }
+        }
+    }
+    let stats = tr.stats();
+    let present = tr.mask().iter().filter(|&&m| m == status::USED).count();
+    assert_eq!(stats.used, present);
+    assert!(tr.mask()[10 * n_x..11 * n_x]
+        .iter()
+        .all(|&m| m == status::MISSING));
+}
+
+#[test]
+fn em_increases_fit_and_converges_on_linear_model() {
+    let (em, x, p, _, _, _) = linear_problem(11);
+    let mut tr = Tracker::new(em, x).unwrap();
+    let opts = EmOptions {
+        max_iter: 300,
+        tol: 5e-3,
+        gate: None,
+    };
+    let out = tr.run_em(p, &opts, |_| true).unwrap();
+    assert!(out.converged, "{:?}", out.history.last());
+    // Δ falls below tol; V_x approaches the true noise variance (uniform ±0.05 → 8.3e-4).
+    let mean_vx: f64 = out.params.vx.iter().sum::<f64>() / out.params.vx.len() as f64;
+    assert!(mean_vx > 2e-4 && mean_vx < 3e-3, "V_x {mean_vx}");
+    // Uniform ±0.1 steps → variance 3.3e-3 per coordinate.
+    let n = 3;
+    for i in 0..n {
+        let v = out.params.vz[i * n + i];
+        assert!(v > 1e-3 && v < 1e-2, "V_z[{i}] {v}");
+    }
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let (em, x, p, n, n_x, _) = linear_problem(3);
+    let mut bad = x.clone();
+    bad[5] = f64::INFINITY;
+    assert!(matches!(
+        Tracker::new(em.clone(), bad),
+        Err(AcmError::NonFinite(_))
+    ));
+    assert!(matches!(
+        Tracker::new(em.clone(), x[..n_x + 1].to_vec()),
+        Err(AcmError::Shape(_))
+    ));
+    let mut tr = Tracker::new(em, x).unwrap();
+    let mut q = p.clone();
+    q.vz[0] = -1.0; // not positive definite
+    assert!(matches!(tr.e_step(&q, None), Err(AcmError::Numerical(_))));
+    let mut q = p.clone();
+    q.vx[2] = 0.0;
+    assert!(matches!(tr.e_step(&q, None), Err(AcmError::Invalid(_))));
+    let mut q = p;
+    q.mu0 = vec![0.0; n + 1];
+    assert!(matches!(tr.e_step(&q, None), Err(AcmError::Shape(_))));
+}
+
+#[test]
+fn gate_rejects_gross_outliers_only() {
+    let (em, mut x, p, _, n_x, t_len) = linear_problem(5);
+    // Gross outliers in a few entries.
+    let bad = [(20usize, 1usize), (25, 4), (30, 2)];
+    for &(k, j) in &bad {
+        x[k * n_x + j] = 50.0;
+    }
+    let mut tr = Tracker::new(em, x).unwrap();
+    let stats = tr.e_step(&p, Some(25.0)).unwrap();
+    for &(k, j) in &bad {
+        assert_eq!(tr.mask()[k * n_x + j], status::GATED, "frame {k} entry {j}");
+    }
+    assert_eq!(stats.gated, bad.len());
+    assert!(t_len > 30);
+}
