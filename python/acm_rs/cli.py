@@ -134,6 +134,11 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("-o", "--output", required=True, help="learned skeleton TOML to write")
     lp.add_argument("--plots", help="folder for the reprojection and skeleton figures")
     lp.set_defaults(func=_cmd_learn)
+    from .batch import add_subcommands as add_batch
+    from .project import add_subcommands as add_init
+
+    add_init(sub)
+    add_batch(sub)
     from .gapfill.cli import add_subcommands as add_gapfill
 
     add_gapfill(sub)

@@ -1,0 +1,106 @@
+"""C3D motion-capture export (ezc3d): 3D markers, optionally joints as virtual markers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ._common import UNIT_MM, atomic_path, detection_stats
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..tracking.result import PoseResult
+
+__all__ = ["to_c3d"]
+
+
+def to_c3d(
+    result: PoseResult,
+    path: str | Path,
+    rate: float,
+    *,
+    joints: bool = False,
+    joint_prefix: str = "joint_",
+    units: str = "mm",
+) -> Path:
+    """Write the 3D markers (and optionally the joints) as a C3D file with ezc3d.
+
+    ``POINT:LABELS`` are the marker names (joints follow as virtual markers named
+    ``joint_prefix + name``), ``POINT:UNITS`` is ``units``, ``POINT:RATE`` is ``rate``.
+    Positions are converted from ``result.skeleton.units`` to ``units`` (mm by default, what
+    most C3D readers expect); ``POINT:DESCRIPTIONS`` say which points are markers and which
+    joints. Frames where a point is not finite are written as NaN with residual -1 (the C3D
+    "invalid" flag); the residual of a valid marker is 0 if some camera detected it, otherwise
+    1 (position imputed by the tracking model), so a reader can tell measured from imputed.
+
+    Parameters
+    ----------
+    result : PoseResult
+        Tracked poses, T frames.
+    path : path
+        ``.c3d`` file (written to a temporary file in the same folder, then renamed).
+    rate : float
+        Frame rate in Hz.
+    joints : bool
+        Append the J joints as virtual markers.
+    joint_prefix : str
+        Label prefix of the joints (marker and joint names overlap in the ACM models).
+    units : {"mm", "cm", "m"}
+        Length unit of the file.
+
+    Returns
+    -------
+    Path
+    """
+    import ezc3d
+
+    path = Path(path)
+    if path.suffix.lower() != ".c3d":
+        raise ValueError(f"C3D path must end in .c3d, got {path.name!r}")
+    if not (np.isfinite(rate) and rate > 0):
+        raise ValueError(f"rate must be a positive frame rate in Hz, got {rate}")
+    src = result.skeleton.units
+    if units not in UNIT_MM:
+        raise ValueError(f"units must be one of {sorted(UNIT_MM)}, got {units!r}")
+    if src not in UNIT_MM:
+        raise ValueError(
+            f"cannot convert skeleton units {src!r} to {units!r}: the skeleton's units must be "
+            f"one of {sorted(UNIT_MM)} (set skeleton.units)"
+        )
+    scale = UNIT_MM[src] / UNIT_MM[units]
+    labels = list(result.marker_names)
+    descriptions = [f"marker {n} ({result.skeleton.name} model)" for n in labels]
+    pts = [np.asarray(result.markers, float)]
+    _, ncams, _ = detection_stats(result, "markers")
+    seen = [ncams > 0]
+    if joints:
+        jl = [joint_prefix + n for n in result.joint_names]
+        clash = sorted(set(jl) & set(labels))
+        if clash:
+            raise ValueError(f"joint labels {clash} clash with marker names; change joint_prefix")
+        labels += jl
+        descriptions += [f"joint {n} (virtual marker)" for n in result.joint_names]
+        pts.append(np.asarray(result.joints, float))
+        _, jcams, _ = detection_stats(result, "joints")
+        seen.append(jcams > 0)
+    xyz = np.concatenate(pts, axis=1) * scale  # (T, P, 3)
+    measured = np.concatenate(seen, axis=1)  # (T, P)
+    n_t, n_p = xyz.shape[:2]
+    data = np.ones((4, n_p, n_t))
+    data[:3] = xyz.transpose(2, 1, 0)
+    valid = np.all(np.isfinite(xyz), axis=2).T  # (P, T)
+    data[:3, ~valid] = np.nan
+    residuals = np.where(valid, np.where(measured.T, 0.0, 1.0), -1.0)[None]
+
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [float(rate)]
+    c["parameters"]["POINT"]["LABELS"]["value"] = labels
+    c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = descriptions
+    c["parameters"]["POINT"]["UNITS"]["value"] = [units]
+    c["data"]["points"] = data
+    c["data"]["meta_points"]["residuals"] = residuals
+    c.add_parameter("PROCESSING", "SOFTWARE", "acm-rs")
+    with atomic_path(path) as tmp:
+        c.write(str(tmp))
+    return path
