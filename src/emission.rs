@@ -173,7 +173,11 @@ pub fn emission_batch_into(
         )));
     }
     let block = cameras.len() * skeleton.n_markers() * 2;
-    ensure_len(out.len(), (states.len() / ns) * block, "emission output buffer")?;
+    ensure_len(
+        out.len(),
+        (states.len() / ns) * block,
+        "emission output buffer",
+    )?;
     if block == 0 {
         return Ok(());
     }

@@ -26,6 +26,7 @@ pub mod gapfill;
 pub mod learning;
 pub mod limits;
 pub mod normalization;
+pub mod npz;
 pub mod rotation;
 pub mod skeleton;
 pub mod symmetry;

@@ -598,6 +598,7 @@ fn native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyStateMap>()?;
     m.add_class::<learning::PyLearning>()?;
     m.add_class::<tracking::PyTracker>()?;
+    m.add_function(wrap_pyfunction!(tracking::smooth_bundle, m)?)?;
     m.add("AcmNumericalError", m.py().get_type::<AcmNumericalError>())?;
     m.add("N_CAMERA_PARAMS", camera::N_PARAMS)?;
     gapfill::register(m)?;

@@ -16,6 +16,8 @@ pub(super) struct PyTracker {
 }
 
 type ParamArrays<'py> = (Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>);
+/// `(params, history, converged, interrupted)` of `run_em`.
+type EmReturn<'py> = (Bound<'py, PyDict>, Vec<Bound<'py, PyDict>>, bool, bool);
 
 impl PyTracker {
     fn params(&self, p: &ParamArrays<'_>) -> PyResult<Params> {
@@ -100,7 +102,7 @@ impl PyTracker {
         tol: f64,
         gate: Option<f64>,
         callback: Option<Py<PyAny>>,
-    ) -> PyResult<(Bound<'py, PyDict>, Vec<Bound<'py, PyDict>>, bool, bool)> {
+    ) -> PyResult<EmReturn<'py>> {
         let init = self.params(&(mu0, v0, vz, vx))?;
         let opts = EmOptions {
             max_iter,
@@ -275,4 +277,25 @@ impl PyTracker {
             out(py, p.markers_std, &[t, nm, 3])?,
         ))
     }
+}
+
+/// Runs [`crate::tracking::bundle::smooth_file`] (the `acm-smooth` binary's work) on one
+/// bundle with the GIL released → `(n_frames, iterations, converged, mean_reprojection_px)`.
+#[pyfunction]
+#[pyo3(signature = (input, output, keep_cov=true))]
+pub(super) fn smooth_bundle(
+    py: Python<'_>,
+    input: std::path::PathBuf,
+    output: std::path::PathBuf,
+    keep_cov: bool,
+) -> PyResult<(usize, usize, bool, f64)> {
+    let s = py
+        .detach(|| crate::tracking::bundle::smooth_file(&input, &output, keep_cov, |_| true))
+        .map_err(to_py)?;
+    Ok((
+        s.n_frames,
+        s.outcome.history.len(),
+        s.outcome.converged,
+        s.mean_reprojection_px,
+    ))
 }

@@ -126,7 +126,9 @@ mod tests {
     #[test]
     fn gram_matches_naive_product() {
         let (rows, k) = (7, 13);
-        let a: Vec<f64> = (0..rows * k).map(|i| ((i * 31 % 17) as f64) - 8.0).collect();
+        let a: Vec<f64> = (0..rows * k)
+            .map(|i| ((i * 31 % 17) as f64) - 8.0)
+            .collect();
         let mut c = vec![0.0; rows * rows];
         for i in 0..rows {
             c[i * rows + i] = 1.0;

@@ -161,7 +161,8 @@ pub(crate) fn step<E: Emission + ?Sized>(
     if let Some(g) = gate {
         apply_gate(em.block(), g, ws, x_t, &params.vx, mask, stats);
     }
-    ws.used.extend((0..n_x).filter(|&j| mask[j] == status::USED));
+    ws.used
+        .extend((0..n_x).filter(|&j| mask[j] == status::USED));
     let np = ws.used.len();
     stats.used += np;
     if np == 0 {
@@ -173,11 +174,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
     ws.ytil.clear();
     ws.ytil.resize(m2 * np, 0.0);
     let mut nu = DVector::zeros(np);
-    let scale: Vec<f64> = ws
-        .used
-        .iter()
-        .map(|&j| 1.0 / params.vx[j].sqrt())
-        .collect();
+    let scale: Vec<f64> = ws.used.iter().map(|&j| 1.0 / params.vx[j].sqrt()).collect();
     for (q, &j) in ws.used.iter().enumerate() {
         nu[q] = (x_t[j] - ws.xbar[j]) * scale[q];
     }

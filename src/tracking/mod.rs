@@ -9,10 +9,12 @@
 //! | [`smoother`] | Alg. 8-9 (RTS), eqs. 58-65/79 (transition statistics) |
 //! | [`mstep`] | Alg. 12-13, eqs. 77-87 |
 //! | [`moments`] | posterior of joints and markers (unscented transform of FK) |
+//! | [`bundle`] | NPZ bundles of the `acm-smooth` binary |
 //!
 //! Memory: the E-step keeps `(T+1)` means and covariances (`8 n² (T+1)` bytes: 2 GB for the
 //! rat's `n = 50` and `T = 10⁵`) and one status byte per measurement entry.
 
+pub mod bundle;
 pub mod dense;
 pub mod filter;
 pub mod model;

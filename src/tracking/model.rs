@@ -55,7 +55,9 @@ impl SkeletonEmission {
         ensure_len(map.n_pose(), skeleton.n_pose(), "state map pose length")?;
         norm.validate()?;
         if cameras.is_empty() {
-            return Err(AcmError::Invalid("the tracker needs at least one camera".into()));
+            return Err(AcmError::Invalid(
+                "the tracker needs at least one camera".into(),
+            ));
         }
         if skeleton.n_markers() == 0 {
             return Err(AcmError::Invalid("the skeleton has no markers".into()));
