@@ -9,8 +9,8 @@ use acm_rs::emission::emission_batch;
 use acm_rs::limits::StateMap;
 use acm_rs::normalization::Normalization;
 use acm_rs::rotation::rodrigues_jacobian;
-use criterion::{criterion_group, criterion_main, Criterion};
 use common::{pseudo_random, rat, rig};
+use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::Vector3;
 use std::hint::black_box;
 

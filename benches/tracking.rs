@@ -58,9 +58,20 @@ fn benches(c: &mut Criterion) {
     group.finish();
 
     // Parts of one filter step.
-    let sigma: Vec<f64> = pseudo_random(2 * n * n, 7).iter().map(|v| 0.3 * v).collect();
+    let sigma: Vec<f64> = pseudo_random(2 * n * n, 7)
+        .iter()
+        .map(|v| 0.3 * v)
+        .collect();
     c.bench_function("tracking/emission_100_sigma_points", |b| {
-        b.iter(|| emission_batch(&em.skeleton, &em.cameras, &em.map, &em.norm, black_box(&sigma)))
+        b.iter(|| {
+            emission_batch(
+                &em.skeleton,
+                &em.cameras,
+                &em.map,
+                &em.norm,
+                black_box(&sigma),
+            )
+        })
     });
     let ytil = pseudo_random(2 * n * n_x, 8);
     let mut gram = vec![0.0; 4 * n * n];
