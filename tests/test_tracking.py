@@ -119,6 +119,12 @@ def test_reprojection_error_and_save_round_trip(tracked, tmp_path):
     np.testing.assert_allclose(df[f"{j0}_x"], tracked.joints[:, 0, 0], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(df[f"{j0}_z_std"], tracked.joints_std[:, 0, 2], rtol=1e-5)
     assert "converged" in tracked.summary()
+    back = acm_rs.PoseResult.load(npz)
+    np.testing.assert_array_equal(back.r, tracked.r)
+    np.testing.assert_array_equal(back.info["status"], tracked.info["status"])
+    np.testing.assert_array_equal(back.info["params"]["Vz"], tracked.info["params"]["Vz"])
+    np.testing.assert_allclose(back.reprojection_error(), err, rtol=1e-9)
+    assert back.state_map.n_state == tracked.state_map.n_state
 
 
 def test_missing_frames_are_predicted(session):

@@ -61,7 +61,9 @@ def to_npz(
     ``joint_names``, ``marker_names``, ``camera_names``, ``camera_params`` (n_cams, 15,
     :data:`acm_rs.PARAM_NAMES` order), ``em_delta``, ``em_seconds``; text: ``units``,
     ``skeleton_toml`` (load with ``Skeleton.from_dict(tomllib.loads(...))``),
-    ``calibration_toml`` (anipose), ``info_json``; ``format`` and ``version``.
+    ``calibration_toml`` (anipose), ``info_json``; ``format`` and ``version``; the arrays of
+    ``info`` as ``param__<name>`` (learned ``mu0``, ``V0``, ``Vz``, ``Vx_diag``) and
+    ``info__<key>`` (e.g. ``info__status`` (n_cams, T, M) measurement status).
     No pickles: ``np.load(path)`` works without ``allow_pickle``.
 
     Returns
@@ -72,6 +74,15 @@ def to_npz(
     if path.suffix.lower() != ".npz":
         raise ValueError(f"NPZ path must end in .npz, got {path.name!r}")
     sk = result.skeleton
+    # Arrays of ``info`` (learned parameters, measurement status) are stored as arrays:
+    # ``param__<name>`` and ``info__<key>``; read_npz puts them back into ``info``.
+    info = dict(result.info)
+    info_arrays = {
+        f"param__{k}": np.asarray(v) for k, v in (info.pop("params", None) or {}).items()
+    }
+    for k, v in list(info.items()):
+        if isinstance(v, np.ndarray):
+            info_arrays[f"info__{k}"] = info.pop(k)
     arrays = {
         "format": np.array(NPZ_FORMAT),
         "version": np.array(NPZ_VERSION),
@@ -94,7 +105,8 @@ def to_npz(
         "em_seconds": np.array([h.get("seconds", np.nan) for h in result.em_history], float),
         "skeleton_toml": np.array(_toml.dumps(sk.to_dict())),
         "calibration_toml": np.array(_calibration_toml(result.rig)),
-        "info_json": np.array(json.dumps(_jsonable(result.info))),
+        "info_json": np.array(json.dumps(_jsonable(info))),
+        **info_arrays,
     }
     if result.state_cov is not None:
         arrays["state_cov"] = np.asarray(result.state_cov, float)
@@ -119,4 +131,9 @@ def read_npz(path: str | Path) -> dict:
         out[k] = str(out[k])
     out["version"] = int(out["version"])
     out["info"] = json.loads(out["info_json"])
+    params = {k[7:]: out[k] for k in out if k.startswith("param__")}
+    if params:
+        out["info"]["params"] = params
+    for k in [k for k in out if k.startswith("info__")]:
+        out["info"][k[6:]] = out[k]
     return out

@@ -146,33 +146,17 @@ class PoseResult:
         return "\n".join(lines)
 
     def save(self, path: str | Path) -> list[Path]:
-        """Write ``<path>.npz`` (every array) and ``<path>_joints.csv``, atomically.
+        """Write ``<path>.npz`` (:func:`acm_rs.export.to_npz`: every array, the skeleton and
+        the calibration; :meth:`load` reads it back) and ``<path>_joints.csv``, atomically.
 
         The CSV has one row per frame and columns ``<joint>_x, <joint>_y, <joint>_z`` followed
         by ``<joint>_x_std, ...``; lengths in ``skeleton.units``.
         """
+        from ..export.npz import to_npz
+
         path = Path(path)
         base = path.with_suffix("") if path.suffix in (".npz", ".csv") else path
-        npz = base.with_suffix(".npz")
-        arrays = {
-            "joints": self.joints,
-            "joints_std": self.joints_std,
-            "markers": self.markers,
-            "t": self.t,
-            "r": self.r,
-            "state_mean": self.state_mean,
-            "detections": self.detections,
-            "joint_names": np.array(self.joint_names),
-            "marker_names": np.array(self.marker_names),
-            "em_delta": np.array([h["delta"] for h in self.em_history], float),
-            "em_seconds": np.array([h["seconds"] for h in self.em_history], float),
-        }
-        if self.state_cov is not None:
-            arrays["state_cov"] = self.state_cov
-        for k, v in self.info.get("params", {}).items():
-            arrays[f"param_{k}"] = np.asarray(v)
-        with atomic_write(npz, "wb") as fh:
-            np.savez(fh, **arrays)
+        npz = to_npz(self, base.with_suffix(".npz"))
         csv = base.with_name(base.name + "_joints.csv")
         cols = [f"{j}_{a}" for j in self.joint_names for a in "xyz"]
         header = ",".join(["frame"] + cols + [c + "_std" for c in cols])
@@ -187,3 +171,40 @@ class PoseResult:
         with atomic_write(csv, "w") as fh:
             np.savetxt(fh, table, delimiter=",", header=header, comments="", fmt="%.6g")
         return [npz, csv]
+
+    @classmethod
+    def load(cls, path: str | Path) -> PoseResult:
+        """Read a result written by :meth:`save` / :func:`acm_rs.export.to_npz`."""
+        import tomllib
+
+        from ..camera import Camera, CameraRig
+        from ..export.npz import read_npz
+        from ..skeleton import Skeleton
+        from ..state import Normalization, StateMap
+
+        d = read_npz(path)
+        skeleton = Skeleton.from_dict(tomllib.loads(d["skeleton_toml"]), source=str(path))
+        cal = tomllib.loads(d["calibration_toml"])
+        cams = [
+            cal[k]
+            for k in sorted((k for k in cal if k.startswith("cam_")), key=lambda k: int(k[4:]))
+        ]
+        rig = CameraRig([Camera.from_dict(c) for c in cams])
+        info = d["info"]
+        nd = info.get("normalization") or {}
+        norm = Normalization(
+            translation=nd.get("translation", 50.0),
+            rotation=nd.get("rotation", np.pi / 2),
+            pixel=tuple(nd.get("pixel", (640.0, 512.0))),
+        )
+        sm = StateMap(skeleton, norm, bool(info.get("joint_limits", True)))
+        history = [
+            {"iteration": i + 1, "delta": float(a), "seconds": float(b)}
+            for i, (a, b) in enumerate(zip(d["em_delta"], d["em_seconds"], strict=True))
+        ]
+        return cls(
+            skeleton=skeleton, rig=rig, state_map=sm, joints=d["joints"],
+            joints_std=d["joints_std"], markers=d["markers"], t=d["t"], r=d["r"],
+            state_mean=d["state_mean"], state_cov=d.get("state_cov"),
+            detections=d["detections"], em_history=history, info=info,
+        )  # fmt: skip

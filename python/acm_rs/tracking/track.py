@@ -50,6 +50,14 @@ def default_normalization(rig: CameraRig, skeleton: Skeleton) -> Normalization:
     return Normalization(translation=translation)
 
 
+def _norm_dict(norm: Normalization) -> dict:
+    return {
+        "translation": norm.translation,
+        "rotation": norm.rotation,
+        "pixel": [float(norm.pixel[0]), float(norm.pixel[1])],
+    }
+
+
 def gate_threshold(p: float | None) -> float | None:
     """Chi-square (2 dof) quantile ``-2 ln(1 - p)`` for a gate probability ``p`` (None: off)."""
     if p is None:
@@ -238,7 +246,10 @@ def track(
             skeleton=skeleton, rig=rig, state_map=sm, joints=joints,
             joints_std=np.zeros_like(joints), markers=markers, t=t, r=r,
             state_mean=sm.from_pose(t, r), state_cov=None, detections=det,
-            info={"method": "deterministic", "seconds": time.perf_counter() - t_start},
+            info={
+                "method": "deterministic", "joint_limits": bool(joint_limits),
+                "normalization": _norm_dict(norm), "seconds": time.perf_counter() - t_start,
+            },
         )  # fmt: skip
         if progress:
             print(result.summary(), file=sys.stderr)
@@ -274,7 +285,8 @@ def track(
             "method": "ukf", "converged": bool(converged), "interrupted": bool(interrupted),
             "iterations": len(history), "tol": float(tol), "gate": gate,
             "params": params, "status": mask, "markers_std": markers_std,
-            "first_frame": f0, "mu0_init": mu0, "normalization": norm,
+            "first_frame": f0, "mu0_init": mu0, "joint_limits": bool(joint_limits),
+            "normalization": _norm_dict(norm),
             "seconds_init": t_init, "seconds": time.perf_counter() - t_start,
         },
     )  # fmt: skip
