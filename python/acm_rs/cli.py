@@ -136,8 +136,10 @@ def build_parser() -> argparse.ArgumentParser:
     lp.set_defaults(func=_cmd_learn)
     from .batch import add_subcommands as add_batch
     from .project import add_subcommands as add_init
+    from .tracking.cli import add_subcommands as add_track
 
     add_init(sub)
+    add_track(sub)
     add_batch(sub)
     from .gapfill.cli import add_subcommands as add_gapfill
 

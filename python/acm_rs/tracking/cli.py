@@ -1,0 +1,142 @@
+"""``acm-rs track`` and ``acm-rs export`` subcommands."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def _frame_slice(spec: str | None, n: int) -> slice:
+    if not spec:
+        return slice(0, n)
+    try:
+        a, b = (int(x) if x else None for x in spec.split(":"))
+    except ValueError:
+        raise ValueError(f"--frames must look like START:END, got {spec!r}") from None
+    return slice(a, b)
+
+
+def _cmd_track(args: argparse.Namespace) -> int:
+    from ..camera import CameraRig
+    from ..cli import _load_model
+    from ..dlc import read_labels
+    from .bundle import write_bundle
+    from .track import track
+
+    rig = CameraRig.load(args.calibration, names=args.camera_names)
+    if len(args.dlc) != len(rig):
+        raise ValueError(
+            f"{len(args.dlc)} DeepLabCut files for {len(rig)} cameras (give one per camera in "
+            f"rig order{'' if args.camera_names else '; --camera-names sets the order'})"
+        )
+    skeleton = _load_model(args.skeleton)
+    ls = read_labels(args.dlc, individual=args.individual)
+    sel = _frame_slice(args.frame_range, ls.points.shape[1])
+    points = ls.points[:, sel]
+    lik = ls.likelihood[:, sel] if ls.likelihood is not None else None
+    if lik is None:
+        print("acm-rs track: the files have no likelihood column; using every detection")
+    out = Path(args.output)
+    opts = {
+        "likelihood": lik, "pcutoff": args.pcutoff, "joint_limits": not args.no_limits,
+        "max_iter": args.max_iter, "tol": args.tol, "gate": None if args.no_gate else args.gate,
+        "marker_names": ls.bodyparts,
+    }  # fmt: skip
+    print(
+        f"acm-rs track: {skeleton.name} ({skeleton.n_markers} markers), {len(rig)} cameras, "
+        f"{points.shape[1]} frames from {', '.join(str(p) for p in args.dlc)}"
+    )
+    if args.bundle:
+        path = write_bundle(out.with_suffix(".bundle.npz"), rig, skeleton, points, **opts)
+        print(f"  wrote {path}; smooth it with: acm-smooth {path}")
+        return 0
+    res = track(rig, skeleton, points, method=args.method, progress=True, **opts)
+    res.info["frames"] = ls.frames[sel]
+    files = res.save(out)
+    for fmt in args.export or []:
+        files += _export(res, fmt, out, args.rate, "joints")
+    if args.plots:
+        from ..plots import plot_all
+
+        files += plot_all(res, Path(args.plots))
+    for f in files:
+        print(f"  wrote {f}")
+    return 0
+
+
+def _export(res, fmt: str, out: Path, rate: float | None, points: str) -> list[Path]:
+    from .. import export
+
+    if fmt == "anipose":
+        return export.to_anipose_csv(res, out.with_name(out.stem + "_3d.csv"), points=points)
+    if fmt == "nwb":
+        return [
+            export.to_nwb(
+                res,
+                out.with_suffix(".nwb"),
+                session_description=f"acm-rs poses of {out.stem}",
+                rate=rate,
+            )  # fmt: skip
+        ]
+    if fmt == "c3d":
+        if not rate:
+            raise ValueError("C3D needs the frame rate; pass --rate")
+        return [export.to_c3d(res, out.with_suffix(".c3d"), rate, joints=True)]
+    if fmt == "npz":
+        return [export.to_npz(res, out.with_suffix(".npz"))]
+    raise ValueError(f"unknown export format {fmt!r}; choose from anipose, nwb, c3d, npz")
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from .result import PoseResult
+
+    res = PoseResult.load(args.input)
+    out = Path(args.output) if args.output else Path(args.input).with_suffix("")
+    files: list[Path] = []
+    for fmt in args.format:
+        files += _export(res, fmt, out, args.rate, args.points)
+    for f in files:
+        print(f"  wrote {f}")
+    return 0
+
+
+def add_subcommands(sub) -> None:
+    """Add ``acm-rs track`` and ``acm-rs export`` to an argparse subparsers object."""
+    p = sub.add_parser(
+        "track",
+        help="reconstruct 3D poses from DeepLabCut detections (EM + unscented RTS smoother)",
+        description="ACM supplement sec. 4: learns the noise model by EM and writes the "
+        "smoothed posterior (OUT.npz, OUT_joints.csv; exports on request).",
+    )
+    p.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    p.add_argument("--camera-names", nargs="+", help="camera names in the order of --dlc")
+    p.add_argument(
+        "--skeleton", default="rat", help="learned skeleton TOML (acm-rs learn) or a model name"
+    )
+    p.add_argument("--dlc", nargs="+", required=True, help="DeepLabCut .h5/.csv, one per camera")
+    p.add_argument("--individual", help="individual in multi-animal DeepLabCut files")
+    p.add_argument("--frames", dest="frame_range", help="frame range START:END (row indices)")
+    p.add_argument("--pcutoff", type=float, default=0.9, help="likelihood cutoff (0.9)")
+    p.add_argument("--max-iter", type=int, default=100, help="EM iterations at most (100)")
+    p.add_argument("--tol", type=float, default=0.05, help="EM tolerance of Alg. 13 (0.05)")
+    p.add_argument("--gate", type=float, default=0.999, help="outlier gate probability (0.999)")
+    p.add_argument("--no-gate", action="store_true", help="use every confident detection")
+    p.add_argument("--no-limits", action="store_true", help="do not enforce joint-angle limits")
+    p.add_argument("--method", choices=["ukf", "deterministic"], default="ukf")
+    p.add_argument("--export", nargs="+", choices=["anipose", "nwb", "c3d"], help="also write")
+    p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D exports")
+    p.add_argument("--plots", help="folder for the tracking figures")
+    p.add_argument("--bundle", action="store_true", help="only write OUT.bundle.npz for acm-smooth")
+    p.add_argument("-o", "--output", required=True, help="output prefix, e.g. out/session1")
+    p.set_defaults(func=_cmd_track)
+
+    e = sub.add_parser("export", help="convert a tracking result (.npz) to other formats")
+    e.add_argument("input", help="result written by acm-rs track (OUT.npz)")
+    e.add_argument("--format", nargs="+", required=True, choices=["anipose", "nwb", "c3d", "npz"])
+    e.add_argument("--points", choices=["joints", "markers"], default="joints")
+    e.add_argument("--rate", type=float, help="frame rate (Hz), needed for C3D")
+    e.add_argument("-o", "--output", help="output prefix (default: next to the input)")
+    e.set_defaults(func=_cmd_export)
+
+
+__all__ = ["add_subcommands"]
