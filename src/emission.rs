@@ -181,9 +181,12 @@ pub fn emission_batch_into(
     if block == 0 {
         return Ok(());
     }
+    // One task per thread for small batches (a UKF step's 2n sigma points): fewer wake-ups.
+    let n_states = states.len() / ns;
+    let min_len = n_states.div_ceil(rayon::current_num_threads()).max(16);
     out.par_chunks_mut(block)
         .zip(states.par_chunks(ns))
-        .with_min_len(16)
+        .with_min_len(min_len)
         .for_each_init(
             || {
                 (

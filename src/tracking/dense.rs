@@ -119,6 +119,36 @@ pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64]) {
     }
 }
 
+/// `Aᵀ A` for a column-major `a` (`rows × cols`), through the `matrixmultiply` kernels.
+pub fn at_a(a: &DMatrix<f64>) -> DMatrix<f64> {
+    let (rows, cols) = a.shape();
+    let mut c = DMatrix::zeros(cols, cols);
+    if rows == 0 || cols == 0 {
+        return c;
+    }
+    // SAFETY: Aᵀ is read with (rs = rows, cs = 1), A with (rs = 1, cs = rows): both in-bounds
+    // views of `a`'s column-major storage; C is `cols × cols` column-major.
+    unsafe {
+        matrixmultiply::dgemm(
+            cols,
+            rows,
+            cols,
+            1.0,
+            a.as_ptr(),
+            rows as isize,
+            1,
+            a.as_ptr(),
+            1,
+            rows as isize,
+            0.0,
+            c.as_mut_ptr(),
+            1,
+            cols as isize,
+        );
+    }
+    c
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -141,6 +171,13 @@ mod tests {
                 assert!((c[j * rows + i] - want).abs() < 1e-9);
             }
         }
+    }
+
+    #[test]
+    fn at_a_matches_nalgebra() {
+        let a = DMatrix::from_fn(9, 4, |i, j| ((i * 7 + j * 3) % 5) as f64 - 2.0);
+        let want = a.transpose() * &a;
+        assert!((at_a(&a) - want).abs().max() < 1e-12);
     }
 
     #[test]

@@ -139,19 +139,19 @@ pub(crate) fn step<E: Emission + ?Sized>(
     let m2 = 2 * n;
     let inv = 1.0 / m2 as f64;
     ws.used.clear();
+    // x̄ row by row (contiguous); a NaN emission anywhere in a column makes x̄_j NaN.
+    ws.xbar.fill(0.0);
+    for row in ws.x.chunks_exact(n_x) {
+        for (a, v) in ws.xbar.iter_mut().zip(row) {
+            *a += v;
+        }
+    }
     for j in 0..n_x {
+        ws.xbar[j] *= inv;
         if x_t[j].is_nan() {
             continue;
         }
-        let mut s = 0.0;
-        let mut finite = true;
-        for i in 0..m2 {
-            let v = ws.x[i * n_x + j];
-            finite &= v.is_finite();
-            s += v;
-        }
-        if finite {
-            ws.xbar[j] = s * inv;
+        if ws.xbar[j].is_finite() {
             mask[j] = status::USED;
         } else {
             mask[j] = status::INVISIBLE;
@@ -217,7 +217,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
         }
     }
     lm.solve_lower_triangular_mut(&mut u);
-    let mut vt = u.tr_mul(&u);
+    let mut vt = super::dense::at_a(&u);
     symmetrize(&mut vt);
     v_out.copy_from_slice(vt.as_slice());
     Ok(())
@@ -237,30 +237,41 @@ fn apply_gate(
     let n_x = x_t.len();
     let m2 = ws.x.len() / n_x;
     let inv = 1.0 / m2 as f64;
-    let mut rejected = Vec::new();
-    let mut blocks = 0;
-    for b0 in (0..n_x).step_by(block) {
-        let b1 = (b0 + block).min(n_x);
-        if (b0..b1).any(|j| mask[j] != status::USED) {
-            continue;
-        }
-        blocks += 1;
-        let k = b1 - b0;
-        let mut sb = DMatrix::zeros(k, k);
-        for i in 0..m2 {
-            let row = &ws.x[i * n_x..(i + 1) * n_x];
+    let k = block;
+    let n_blocks = n_x / k;
+    // Blocks of S (lower triangles, k(k+1)/2 entries each), accumulated row by row.
+    let tri = k * (k + 1) / 2;
+    let mut sb_all = vec![0.0; n_blocks * tri];
+    for row in ws.x.chunks_exact(n_x) {
+        for (b, acc) in sb_all.chunks_exact_mut(tri).enumerate() {
+            let b0 = b * k;
+            let mut e = 0;
             for a in 0..k {
                 let da = row[b0 + a] - ws.xbar[b0 + a];
                 for c in 0..=a {
-                    sb[(a, c)] += inv * da * (row[b0 + c] - ws.xbar[b0 + c]);
+                    acc[e] += da * (row[b0 + c] - ws.xbar[b0 + c]);
+                    e += 1;
                 }
             }
         }
+    }
+    let mut rejected = Vec::new();
+    let mut blocks = 0;
+    for (b, acc) in sb_all.chunks_exact(tri).enumerate() {
+        let b0 = b * k;
+        if (b0..b0 + k).any(|j| mask[j] != status::USED) {
+            continue;
+        }
+        blocks += 1;
+        let mut sb = DMatrix::zeros(k, k);
+        let mut e = 0;
         for a in 0..k {
-            sb[(a, a)] += vx[b0 + a];
-            for c in 0..a {
-                sb[(c, a)] = sb[(a, c)];
+            for c in 0..=a {
+                sb[(a, c)] = inv * acc[e];
+                sb[(c, a)] = inv * acc[e];
+                e += 1;
             }
+            sb[(a, a)] += vx[b0 + a];
         }
         let nu = DVector::from_fn(k, |a, _| x_t[b0 + a] - ws.xbar[b0 + a]);
         let d2 = match sb.cholesky() {
@@ -282,7 +293,7 @@ fn apply_gate(
         return;
     }
     for b0 in rejected {
-        for m in mask.iter_mut().skip(b0).take(block.min(n_x - b0)) {
+        for m in mask.iter_mut().skip(b0).take(k) {
             *m = status::GATED;
             stats.gated += 1;
         }
