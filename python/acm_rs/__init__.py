@@ -6,7 +6,18 @@ kinematics (sec. 3.1, Alg. 1), symmetry maps (Alg. 2-3), normalisation (sec. 3.3
 joint-limit state map (Alg. 10), all with exact derivatives computed in Rust.
 """
 
-from . import acm_formats, batch, datasets, dlc, export, gapfill, models, plots, project
+from . import (
+    acm_formats,
+    batch,
+    datasets,
+    dlc,
+    export,
+    gapfill,
+    models,
+    pipeline,
+    plots,
+    project,
+)
 from ._native import AcmNumericalError
 from .camera import PARAM_NAMES, Camera, CameraRig
 from .learning import LearnedSkeleton, fit_pose, learn_skeleton
@@ -40,6 +51,7 @@ __all__ = [
     "fit_pose",
     "learn_skeleton",
     "models",
+    "pipeline",
     "plots",
     "project",
     "rodrigues",

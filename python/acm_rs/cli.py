@@ -135,11 +135,13 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("--plots", help="folder for the reprojection and skeleton figures")
     lp.set_defaults(func=_cmd_learn)
     from .batch import add_subcommands as add_batch
+    from .pipeline import add_subcommands as add_pipeline
     from .project import add_subcommands as add_init
     from .tracking.cli import add_subcommands as add_track
 
     add_init(sub)
     add_track(sub)
+    add_pipeline(sub)
     add_batch(sub)
     from .gapfill.cli import add_subcommands as add_gapfill
 

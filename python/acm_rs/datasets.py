@@ -205,3 +205,65 @@ def dlc_like_detections(
             out = (px[c, ..., 0] < 0) | (px[c, ..., 0] >= w) | (px[c, ..., 1] < 0)
             px[c][out | (px[c, ..., 1] >= h)] = np.nan
     return px, lik
+
+
+def checkerboard_points(squares: tuple[int, int] = (10, 7), square: float = 2.0) -> np.ndarray:
+    """Inner corners of a checkerboard with ``squares`` (x, y) squares of side ``square``.
+
+    Returns
+    -------
+    numpy.ndarray, shape ((sx - 1) * (sy - 1), 3)
+        Row-major grid in the board plane (z = 0), first corner at the origin.
+    """
+    sx, sy = squares
+    gx, gy = np.meshgrid(np.arange(sx - 1), np.arange(sy - 1))
+    return np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)]) * float(square)
+
+
+def board_views(
+    rig: CameraRig,
+    board_points: np.ndarray,
+    n_views: int = 40,
+    noise_px: float = 0.3,
+    dropout: float = 0.1,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Synchronous detections of a board moved through the arena (for calibration demos).
+
+    View 0 lies flat on the floor with its first corner at the world origin and its axes along
+    world x and y (so it defines the world frame); the others are at random places, heights
+    and tilts (up to 50 degrees). A camera sees a view when the board faces it and every corner
+    is inside its image; a fraction ``dropout`` of those detections fails at random.
+
+    Returns
+    -------
+    corners : numpy.ndarray, shape (n_cams, n_views, P, 2)
+        Pixels with Gaussian noise ``noise_px``; NaN where the camera did not detect the board.
+    rvecs, tvecs : numpy.ndarray, shape (n_views, 3)
+        Board-to-world poses (``x_world = R(rvec) x_board + tvec``).
+    """
+    rng = np.random.default_rng(seed)
+    pts = np.asarray(board_points, float)
+    centre = pts.mean(axis=0)
+    rvecs = np.zeros((n_views, 3))
+    tvecs = np.zeros((n_views, 3))
+    for v in range(1, n_views):
+        axis = np.array([*rng.normal(size=2), 0.0])
+        tilt = rodrigues(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0, 50)))
+        rot = tilt @ rodrigues(np.array([0.0, 0.0, rng.uniform(-np.pi, np.pi)]))
+        place = np.array([*rng.uniform(-12, 12, 2), rng.uniform(2, 20)])
+        rvecs[v] = rodrigues_inverse(rot)
+        tvecs[v] = place - rot @ centre
+    world = np.einsum("vij,pj->vpi", rodrigues(rvecs), pts) + tvecs[:, None]
+    corners = np.full((len(rig), n_views, len(pts), 2), np.nan)
+    normals = rodrigues(rvecs)[:, :, 2]
+    for c, cam in enumerate(rig):
+        px = cam.project(world.reshape(-1, 3)).reshape(n_views, len(pts), 2)
+        facing = np.einsum("vi,vi->v", normals, cam.center - world.mean(axis=1)) > 0
+        w, h = cam.size if cam.size is not None else (np.inf, np.inf)
+        inside = ((px >= 5) & (px <= np.array([w, h]) - 5)).all(axis=(1, 2))
+        seen = facing & inside & (rng.random(n_views) >= dropout)
+        seen[0] = facing[0] and inside[0]
+        noisy = px + rng.normal(scale=noise_px, size=px.shape)
+        corners[c, seen] = noisy[seen]
+    return corners, rvecs, tvecs

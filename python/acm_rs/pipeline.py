@@ -1,0 +1,367 @@
+"""The project workflow: calibrate -> learn -> track -> export -> plot, step by step.
+
+Each step reads what the previous one wrote in the project folder (layout in
+``docs/project.md``), skips its work when its output exists (unless ``overwrite``), writes
+atomically and logs to ``<project>/logs/acm-rs-<time>.log``:
+
+=============  ==================================================  ===========================
+step           input                                               output
+=============  ==================================================  ===========================
+calibrate      ``calibration/`` videos or image folders of a board  ``paths.calibration``
+learn          ``paths.manual_labels`` (DeepLabCut CollectedData)   ``skeleton.toml``
+track          session ``paths.labels`` (DeepLabCut predictions)    ``<output>/pose.npz``
+export         ``pose.npz``                                         ``pose_3d.csv``, ``.nwb``,
+                                                                    ``.c3d`` (with ``fps``)
+plot           ``pose.npz``                                         ``<output>/plots/*.png``
+=============  ==================================================  ===========================
+
+:func:`run_session` is the per-session function of :mod:`acm_rs.batch` (Dask).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from .project import ProjectConfig, Session, find_sessions, load_config
+
+__all__ = [
+    "STEPS",
+    "project_log",
+    "run_all",
+    "run_session",
+    "step_calibrate",
+    "step_export",
+    "step_learn",
+    "step_plot",
+    "step_track",
+]
+
+STEPS = ("calibrate", "learn", "track", "export", "plot")
+SKELETON_NAME = "skeleton.toml"
+POSE_NAME = "pose.npz"
+log = logging.getLogger("acm_rs.pipeline")
+
+
+@contextlib.contextmanager
+def project_log(config: ProjectConfig) -> Iterator[Path]:
+    """Log this run (INFO and above) to ``<project>/logs/acm-rs-<YYYYmmdd-HHMMSS>.log``."""
+    folder = config.root / "logs"
+    folder.mkdir(exist_ok=True)
+    path = folder / f"acm-rs-{time.strftime('%Y%m%d-%H%M%S')}.log"
+    handler = logging.FileHandler(path, encoding="utf-8")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    root = logging.getLogger("acm_rs")
+    root.addHandler(handler)
+    old = root.level
+    root.setLevel(logging.INFO)
+    try:
+        yield path
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(old)
+        handler.close()
+
+
+def _say(msg: str) -> None:
+    print(msg, flush=True)
+    log.info(msg)
+
+
+def _skip(path: Path, overwrite: bool, what: str) -> bool:
+    if path.exists() and not overwrite:
+        _say(f"{what}: {path} exists, skipped (--overwrite to redo)")
+        return True
+    return False
+
+
+def _calibration_path(config: ProjectConfig) -> Path:
+    return config.root / config.paths["calibration"]
+
+
+def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
+    """Calibrate from ``<project>/calibration/`` (one video, or one image folder, per camera;
+    camera names from ``cameras.regex``) with the board of ``config.toml``.
+
+    Returns
+    -------
+    Path
+        The ``calibration.toml`` written (or found).
+    """
+    from .calibration import BoardSpec, calibrate, detect
+    from .project import VIDEO_SUFFIXES, _camera_of
+
+    out = _calibration_path(config)
+    if _skip(out, overwrite, "calibrate"):
+        return out
+    folder = config.root / "calibration"
+    if not folder.is_dir():
+        raise FileNotFoundError(
+            f"{folder}: no calibration folder; put one board video (or image folder) per camera "
+            f"there, or an anipose calibration file at {out}"
+        )
+    regex = config.camera_regex
+    sources = {}
+    for p in sorted(folder.iterdir()):
+        if p.is_dir() or p.suffix.lower() in VIDEO_SUFFIXES:
+            cam = _camera_of(p, regex)
+            if cam is not None:
+                sources[cam] = p
+    names = list(config.cameras["names"]) or sorted(sources)
+    missing = [n for n in names if n not in sources]
+    if missing or not names:
+        raise ValueError(
+            f"{folder}: no calibration video or image folder for camera(s) {missing or names}; "
+            f"found {sorted(sources)} with cameras.regex {regex.pattern!r}"
+        )
+    spec = BoardSpec.from_dict(config.board())
+    det = detect(
+        [sources[n] for n in names], spec, camera_names=names,
+        cache=out.with_suffix(".detections.npz"), progress=True,
+    )  # fmt: skip
+    res = calibrate(det.corners, spec.board_points, det.image_sizes, camera_names=names)
+    res.save(out)
+    res.save_report(out.with_suffix(".report.json"), png=out.with_suffix(".qc.png"))
+    _say(f"calibrate: {len(names)} cameras, RMS {res.rms:.3f} px -> {out}")
+    return out
+
+
+def _load_rig(config: ProjectConfig, session: Session | None = None):
+    from .camera import CameraRig
+
+    path = session.calibration if session is not None else _calibration_path(config)
+    if path is None or not Path(path).is_file():
+        raise FileNotFoundError(
+            f"no calibration file {config.paths['calibration']} in the session or project; "
+            "run `acm-rs run-all` (calibrate step) or copy an anipose calibration.toml there"
+        )
+    names = session.cameras if session is not None else (config.cameras["names"] or None)
+    return CameraRig.load(path, names=names)
+
+
+def _generic_model(config: ProjectConfig):
+    from .cli import _load_model
+
+    spec = config.project["model"]
+    local = config.root / spec
+    return _load_model(str(local) if local.is_file() else spec)
+
+
+def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
+    """Learn bone lengths and marker offsets from ``paths.manual_labels`` (one DeepLabCut
+    ``CollectedData`` file per camera, camera names from ``cameras.regex``).
+
+    Without manual labels the generic model is copied (and the log says so).
+    """
+    from .dlc import read_labels
+    from .learning import learn_skeleton
+    from .project import LABEL_SUFFIXES, _files_by_camera
+
+    out = config.root / SKELETON_NAME
+    if _skip(out, overwrite, "learn"):
+        return out
+    generic = _generic_model(config)
+    folder = config.root / config.paths["manual_labels"]
+    files = _files_by_camera(folder, LABEL_SUFFIXES, config.camera_regex) if folder.is_dir() else {}
+    if not files:
+        _say(f"learn: no manual labels in {folder}; using the generic {generic.name} model")
+        generic.save(out)
+        return out
+    rig = _load_rig(config)
+    names = [c.name for c in rig]
+    missing = [n for n in names if n not in files]
+    if missing:
+        raise ValueError(f"{folder}: no label file for camera(s) {missing}; found {sorted(files)}")
+    labels = read_labels([files[n] for n in names])
+    res = learn_skeleton(
+        rig, generic, labels.points, body_weight=config.project.get("body_weight"),
+        marker_names=labels.bodyparts, progress=True,
+    )  # fmt: skip
+    res.skeleton.save(out)
+    _say(f"learn: {labels.points.shape[1]} frames, RMS {res.rms:.2f} px -> {out}")
+    return out
+
+
+def _session_output(session: Session, out: Path | None) -> Path:
+    return Path(out) if out is not None else session.output
+
+
+def step_track(
+    config: ProjectConfig, session: Session, overwrite: bool = False, out: Path | None = None
+) -> Path:
+    """Track one session's DeepLabCut predictions with the learned skeleton."""
+    from .dlc import read_labels
+    from .skeleton import Skeleton
+    from .tracking import track
+
+    folder = _session_output(session, out)
+    path = folder / POSE_NAME
+    if _skip(path, overwrite, f"track {session.name}"):
+        return path
+    if not session.labels:
+        raise FileNotFoundError(
+            f"{session.path / config.paths['labels']}: no DeepLabCut predictions for this session"
+        )
+    rig = _load_rig(config, session)
+    skel_path = config.root / SKELETON_NAME
+    skeleton = Skeleton.load(skel_path) if skel_path.is_file() else _generic_model(config)
+    ls = read_labels([session.labels[c] for c in session.cameras])
+    dt = int(config.tracking["dt"])
+    lik = ls.likelihood[:, ::dt] if ls.likelihood is not None else None
+    res = track(
+        rig, skeleton, ls.points[:, ::dt], likelihood=lik, pcutoff=config.tracking["pcutoff"],
+        max_iter=config.em["max_iter"], tol=config.em["tol"], marker_names=ls.bodyparts,
+    )  # fmt: skip
+    res.info["frames"] = ls.frames[::dt]
+    folder.mkdir(parents=True, exist_ok=True)
+    res.save(path)
+    _say(f"track {session.name}: {res.summary().splitlines()[0]} -> {path}")
+    return path
+
+
+def step_export(
+    config: ProjectConfig, session: Session, overwrite: bool = False, out: Path | None = None
+) -> list[Path]:
+    """anipose CSV (+ variance sidecar) always; NWB and C3D when ``tracking.fps`` is set."""
+    from . import export
+    from .tracking import PoseResult
+
+    folder = _session_output(session, out)
+    csv = folder / "pose_3d.csv"
+    if _skip(csv, overwrite, f"export {session.name}"):
+        return [csv]
+    res = PoseResult.load(folder / POSE_NAME)
+    files = export.to_anipose_csv(res, csv)
+    fps = config.tracking.get("fps")
+    if fps:
+        files.append(
+            export.to_nwb(
+                res,
+                folder / "pose.nwb",
+                rate=fps,
+                session_description=f"acm-rs poses of session {session.name}",
+            )  # fmt: skip
+        )
+        files.append(export.to_c3d(res, folder / "pose.c3d", fps, joints=True))
+    else:
+        _say(f"export {session.name}: tracking.fps not set; NWB and C3D skipped")
+    _say(f"export {session.name}: {', '.join(f.name for f in files)}")
+    return files
+
+
+def step_plot(
+    config: ProjectConfig, session: Session, overwrite: bool = False, out: Path | None = None
+) -> list[Path]:
+    """The tracking figures of :func:`acm_rs.plots.plot_all` in ``<output>/plots``."""
+    from .plots import plot_all
+    from .tracking import PoseResult
+
+    folder = _session_output(session, out) / "plots"
+    if _skip(folder, overwrite, f"plot {session.name}"):
+        return []
+    res = PoseResult.load(_session_output(session, out) / POSE_NAME)
+    files = plot_all(res, folder, frame_rate=config.tracking.get("fps"))
+    _say(f"plot {session.name}: {len(files)} figures in {folder}")
+    return files
+
+
+def run_all(
+    project: str | Path, overwrite: bool = False, steps: tuple[str, ...] = STEPS
+) -> dict[str, str]:
+    """Run ``steps`` on every session of a project; a failing session does not stop the
+    others. Returns ``{session name: "ok" | error message}``."""
+    bad = [s for s in steps if s not in STEPS]
+    if bad:
+        raise ValueError(f"unknown step(s) {bad}; steps are {list(STEPS)}")
+    config = load_config(Path(project) / "config.toml")
+    status: dict[str, str] = {}
+    with project_log(config) as log_path:
+        _say(f"acm-rs: project {config.root}, steps {', '.join(steps)}; log {log_path}")
+        has_board_media = (config.root / "calibration").is_dir() and any(
+            p.suffix.lower() != ".toml" and not p.name.startswith(".")
+            for p in (config.root / "calibration").iterdir()
+        )
+        if "calibrate" in steps and (has_board_media or not _calibration_path(config).exists()):
+            step_calibrate(config, overwrite)
+        if "learn" in steps:
+            step_learn(config, overwrite)
+        for session in find_sessions(config):
+            try:
+                if "track" in steps:
+                    step_track(config, session, overwrite)
+                if "export" in steps:
+                    step_export(config, session, overwrite)
+                if "plot" in steps:
+                    step_plot(config, session, overwrite)
+                status[session.name] = "ok"
+            except (ValueError, OSError, ArithmeticError) as exc:
+                status[session.name] = f"{type(exc).__name__}: {exc}"
+                log.exception("session %s failed", session.name)
+                print(f"session {session.name} FAILED: {exc}", flush=True)
+        _say(f"acm-rs: {sum(v == 'ok' for v in status.values())}/{len(status)} sessions ok")
+    return status
+
+
+def run_session(session_dir: str | Path, out_dir: str | Path) -> dict:
+    """Track, export and plot one session (the default per-session function of
+    :func:`acm_rs.batch.run`); the project's ``config.toml`` is in the session's parent."""
+    session_dir = Path(session_dir)
+    config = load_config(session_dir.parent / "config.toml")
+    matches = [s for s in find_sessions(config) if s.path.resolve() == session_dir.resolve()]
+    if not matches:
+        raise ValueError(f"{session_dir} is not a session of the project {config.root}")
+    s = matches[0]
+    out = Path(out_dir)
+    pose = step_track(config, s, True, out)
+    files = step_export(config, s, True, out)
+    plots = step_plot(config, s, True, out)
+    return {"pose": str(pose), "exports": [str(f) for f in files], "plots": len(plots)}
+
+
+def _cmd_run_all(args) -> int:
+    steps = tuple(args.steps.split(",")) if args.steps else STEPS
+    status = run_all(args.project, overwrite=args.overwrite, steps=steps)
+    return 0 if all(v == "ok" for v in status.values()) else 1
+
+
+def _cmd_plot(args) -> int:
+    from .plots import plot_all
+    from .tracking import PoseResult
+
+    src = Path(args.input)
+    if src.is_dir():
+        config = load_config(src / "config.toml")
+        with project_log(config):
+            for session in find_sessions(config):
+                step_plot(config, session, overwrite=args.overwrite)
+        return 0
+    res = PoseResult.load(src)
+    out = Path(args.output) if args.output else src.with_name(src.stem + "_plots")
+    files = plot_all(res, out, pdf=args.pdf, frame_rate=args.rate)
+    for f in files:
+        print(f"  wrote {f}")
+    return 0
+
+
+def add_subcommands(sub) -> None:
+    """Add ``acm-rs run-all`` and ``acm-rs plot`` to an argparse subparsers object."""
+    p = sub.add_parser(
+        "run-all",
+        help="run calibrate, learn, track, export and plot on a project folder",
+        description="Runs the project workflow (docs/project.md); finished steps are skipped "
+        "unless --overwrite; one log per run in <project>/logs/.",
+    )
+    p.add_argument("project", nargs="?", default=".", help="project folder (config.toml)")
+    p.add_argument("--steps", help=f"comma-separated subset of {','.join(STEPS)}")
+    p.add_argument("--overwrite", action="store_true", help="redo finished steps")
+    p.set_defaults(func=_cmd_run_all)
+    q = sub.add_parser("plot", help="tracking figures of a result (.npz) or of a whole project")
+    q.add_argument("input", help="pose .npz (acm-rs track) or a project folder")
+    q.add_argument("-o", "--output", help="folder for the figures (default: <input>_plots)")
+    q.add_argument("--pdf", action="store_true", help="also write PDF")
+    q.add_argument("--rate", type=float, help="frame rate (Hz) for time axes in seconds")
+    q.add_argument("--overwrite", action="store_true", help="redo a project's figures")
+    q.set_defaults(func=_cmd_plot)

@@ -1,0 +1,80 @@
+"""The project workflow (acm_rs.pipeline, ``acm-rs run-all``) on a tiny generated project."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import acm_rs
+from acm_rs import datasets, models
+from acm_rs.cli import main
+from acm_rs.demo import demo_rig
+from acm_rs.project import init_project
+
+
+def write_dlc(folder, rig, sk, det, lik, prefix="rat"):
+    folder.mkdir(parents=True, exist_ok=True)
+    for c, cam in enumerate(rig):
+        cols = pd.MultiIndex.from_tuples(
+            [("DLC_net", bp, co) for bp in sk.marker_names for co in ("x", "y", "likelihood")],
+            names=["scorer", "bodyparts", "coords"],
+        )
+        data = np.concatenate([det[c], lik[c, :, :, None]], axis=-1).reshape(det.shape[1], -1)
+        pd.DataFrame(data, columns=cols).to_csv(folder / f"{prefix}-{cam.name}DLC_net.csv")
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    root = tmp_path_factory.mktemp("project")
+    init_project(root, cameras={"regex": "(cam[0-9])"}, em={"max_iter": 3}, tracking={"fps": 50})
+    rig = demo_rig()
+    (root / "calibration").mkdir()
+    rig.save(root / "calibration" / "calibration.toml")
+    sk = models.rat()
+    truth = {}
+    for i, name in enumerate(["s1", "s2"]):
+        t, r = datasets.smooth_motion(sk, 20, seed=10 + i)
+        det, lik = datasets.dlc_like_detections(rig, sk, t, r, seed=20 + i)
+        write_dlc(root / name / "pose-2d", rig, sk, det, lik)
+        truth[name] = sk.forward(t, r)[0]
+    (root / "broken" / "pose-2d").mkdir(parents=True)
+    (root / "broken" / "pose-2d" / "rat-cam0DLC_net.csv").write_text("not a DLC file\n")
+    return root, truth
+
+
+def test_run_all_tracks_exports_plots_and_resumes(project, capsys):
+    root, truth = project
+    assert main(["run-all", str(root)]) == 1  # the broken session fails, the others run
+    out = capsys.readouterr().out
+    assert "session broken FAILED" in out and "2/3 sessions ok" in out
+    for name in ("s1", "s2"):
+        res = acm_rs.PoseResult.load(root / name / "acm-rs" / "pose.npz")
+        err = np.linalg.norm(res.joints - truth[name], axis=-1)
+        assert np.median(err) < 0.5  # cm, generic model = the animal here
+        csv = pd.read_csv(root / name / "acm-rs" / "pose_3d.csv")
+        assert len(csv) == 20
+        assert (root / name / "acm-rs" / "pose.nwb").is_file()
+        assert (root / name / "acm-rs" / "pose.c3d").is_file()
+        assert (root / name / "acm-rs" / "plots" / "joint_traces.png").is_file()
+    assert (root / "skeleton.toml").is_file()  # no manual labels: the generic model
+    logs = sorted((root / "logs").glob("acm-rs-*.log"))
+    assert logs and "track s1" in logs[-1].read_text()
+    before = (root / "s1" / "acm-rs" / "pose.npz").stat().st_mtime_ns
+    assert main(["run-all", str(root), "--steps", "track,export"]) == 1
+    assert "exists, skipped" in capsys.readouterr().out
+    assert (root / "s1" / "acm-rs" / "pose.npz").stat().st_mtime_ns == before
+
+
+def test_unknown_step_and_missing_calibration(project, tmp_path):
+    root, _ = project
+    with pytest.raises(ValueError, match="unknown step"):
+        acm_rs.pipeline.run_all(root, steps=("track", "dance"))
+    init_project(tmp_path, cameras={"regex": "(cam[0-9])"})
+    rig = demo_rig()
+    sk = models.rat()
+    t, r = datasets.smooth_motion(sk, 5, seed=1)
+    det, lik = datasets.dlc_like_detections(rig, sk, t, r, seed=2)
+    write_dlc(tmp_path / "s" / "pose-2d", rig, sk, det, lik)
+    status = acm_rs.pipeline.run_all(tmp_path, steps=("track",))
+    assert "no calibration file" in status["s"]
