@@ -137,11 +137,13 @@ def build_parser() -> argparse.ArgumentParser:
     from .batch import add_subcommands as add_batch
     from .pipeline import add_subcommands as add_pipeline
     from .project import add_subcommands as add_init
+    from .run_acm import add_subcommands as add_run_acm
     from .tracking.cli import add_subcommands as add_track
 
     add_init(sub)
     add_track(sub)
     add_pipeline(sub)
+    add_run_acm(sub)
     add_batch(sub)
     from .gapfill.cli import add_subcommands as add_gapfill
 
