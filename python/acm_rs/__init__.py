@@ -6,8 +6,9 @@ kinematics (sec. 3.1, Alg. 1), symmetry maps (Alg. 2-3), normalisation (sec. 3.3
 joint-limit state map (Alg. 10), all with exact derivatives computed in Rust.
 """
 
-from . import datasets, dlc, gapfill, models
+from . import calibration, datasets, dlc, gapfill, models
 from ._native import AcmNumericalError
+from .calibration import CalibrationResult, calibrate
 from .camera import PARAM_NAMES, Camera, CameraRig
 from .learning import LearnedSkeleton, fit_pose, learn_skeleton
 from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
@@ -19,6 +20,7 @@ __version__ = "0.1.0"
 __all__ = [
     "AcmNumericalError",
     "BoneLengthConstraint",
+    "CalibrationResult",
     "Camera",
     "CameraRig",
     "FKJacobian",
@@ -29,6 +31,8 @@ __all__ = [
     "StateMap",
     "SymmetryMap",
     "__version__",
+    "calibrate",
+    "calibration",
     "datasets",
     "dlc",
     "gapfill",

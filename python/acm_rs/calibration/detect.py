@@ -48,14 +48,20 @@ def detect_board(image: np.ndarray, spec: BoardSpec) -> np.ndarray:
         raise ValueError(f"images must be 8-bit, got {gray.dtype}")
     out = np.full((spec.n_points, 2), np.nan)
     if spec.board_type == "checkerboard":
-        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
         found, corners = cv2.findChessboardCorners(gray, spec.inner_corners, flags=flags)
         if not found or corners is None:
             return out
         corners = corners.reshape(-1, 2).astype(np.float32)
-        # Sub-pixel window: well inside one square.
-        spacing = np.min(np.linalg.norm(np.diff(corners[: spec.inner_corners[0]], axis=0), axis=1))
-        win = int(np.clip(spacing * 0.4, 2, 11))
+        # Sub-pixel half-window: well inside one (foreshortened) square, so that it never
+        # reaches a neighbouring corner.
+        nx, ny = spec.inner_corners
+        grid = corners.reshape(ny, nx, 2)
+        spacing = min(
+            np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
+            np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
+        )
+        win = int(np.clip(spacing * 0.3, 2, 11))
         criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
         corners = cv2.cornerSubPix(gray, corners.reshape(-1, 1, 2), (win, win), (-1, -1), criteria)
         out[:] = corners.reshape(-1, 2)
