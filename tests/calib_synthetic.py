@@ -101,3 +101,46 @@ def make_recording(
     clean = np.where(keep[..., None], clean, np.nan)
     noisy = clean + rng.normal(0, noise, clean.shape)
     return Synthetic(rig, board, rv, tv, noisy, clean)
+
+
+@dataclass
+class Rendered:
+    rig: acm_rs.CameraRig  # truth, world = camera 0, no distortion
+    images: list[list[np.ndarray]]  # [camera][frame] uint8 grey
+    pixels: np.ndarray  # (C, F, P, 2) true corner pixels (NaN if the board is off-image)
+
+
+def render_views(spec, n_cams: int = 3, n_frames: int = 10, seed: int = 0, size=(640, 480)):
+    """Synthetic camera images of a board (OpenCV-rendered, warped by the exact homography
+    ``K [r1 r2 t]`` of each camera and board pose, plus grey noise)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    img, to_px = spec.render(60, 40)
+    w, h = size
+    k = np.array([[520.0, 0, w / 2 + 3], [0, 518.0, h / 2 - 4], [0, 0, 1]])
+    world = []
+    for i in range(n_cams):
+        a = 2 * np.pi * i / n_cams + 0.3
+        world.append(_look_at(np.array([330 * np.cos(a), 330 * np.sin(a), 330.0]), np.zeros(3)))
+    r0, t0 = world[0]
+    cams = []
+    for i, (rot, t) in enumerate(world):
+        rr = rot @ r0.T
+        cams.append(acm_rs.Camera(k, [0, 0], rodrigues_inverse(rr), t - rr @ t0, size, f"cam{i}"))
+    rig = acm_rs.CameraRig(cams)
+    centre = spec.board_points.mean(0)
+    images: list[list[np.ndarray]] = [[] for _ in range(n_cams)]
+    pixels = np.full((n_cams, n_frames, spec.n_points, 2), np.nan)
+    for f in range(n_frames):
+        rb = rodrigues(rng.normal(0, 0.25, 3) * [1, 1, 3]) @ np.diag([1.0, -1, -1])
+        tb = rng.uniform([-50, -50, -20], [50, 50, 50]) - rb @ centre
+        for i, (rot, t) in enumerate(world):
+            rc, tc = rot @ rb, rot @ tb + t
+            hom = k @ np.column_stack([rc[:, 0], rc[:, 1], tc])
+            out = cv2.warpPerspective(img, hom @ np.linalg.inv(to_px), size, borderValue=150)
+            noisy = np.clip(out + rng.normal(0, 2.0, out.shape), 0, 255).astype(np.uint8)
+            images[i].append(noisy)
+            p = (spec.board_points @ rc.T + tc) @ k.T
+            pixels[i, f] = p[:, :2] / p[:, 2:]
+    return Rendered(rig, images, pixels)

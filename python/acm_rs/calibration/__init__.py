@@ -1,6 +1,6 @@
 """Multi-camera calibration (ACM supplement section 2.2, eq. 7).
 
-Board detection with OpenCV (:mod:`.detect`, :class:`BoardSpec`), initialisation without
+Board detection with OpenCV (:mod:`.detection`, :class:`BoardSpec`), initialisation without
 guesses (:mod:`.initialise`), refinement of eq. 7 with scipy's trust-region-reflective solver
 on residuals and exact sparse Jacobians from Rust (:func:`calibrate`), a QC report
 (:class:`CalibrationResult`), anipose ``calibration.toml`` output and ACM
@@ -9,7 +9,7 @@ on residuals and exact sparse Jacobians from Rust (:func:`calibrate`), a QC repo
 
 from .acm import load_acm_calibration, save_acm_calibration
 from .board import BoardSpec
-from .detect import Detections, detect, detect_board
+from .detection import Detections, detect, detect_board
 from .result import CalibrationResult
 from .solve import CAMERA_PARAMS, calibrate
 from .world import frame_from_points, transform_rig, triangulate
