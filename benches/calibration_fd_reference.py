@@ -73,9 +73,7 @@ class Problem:
         col[self.free] = np.arange(len(self.free))
         s = lil_matrix((2 * len(self.obs), len(self.free)), dtype=int)
         for k, (c, f) in enumerate(zip(self.cam, self.frame, strict=True)):
-            cols = np.concatenate(
-                [col[12 * c : 12 * c + 12], col[12 * self.n_cams + 6 * f :][:6]]
-            )
+            cols = np.concatenate([col[12 * c : 12 * c + 12], col[12 * self.n_cams + 6 * f :][:6]])
             cols = cols[cols >= 0]
             s[2 * k, cols] = 1
             s[2 * k + 1, cols] = 1

@@ -53,6 +53,9 @@ const CAM_TO_CAMERA: [usize; N_CAM_PARAMS] = [
     param::TVEC + 2,
 ];
 
+/// Board → world rotation, its derivatives `∂R/∂r_k` and the translation of one view.
+type ViewPose = (Matrix3<f64>, [Matrix3<f64>; 3], Vector3<f64>);
+
 /// Detections of one camera in one board view: observations `start..end` (in the order of
 /// [`CalibrationProblem::observation_index`]).
 #[derive(Debug, Clone)]
@@ -191,10 +194,12 @@ impl CalibrationProblem {
                 }
                 if observed.len() > start {
                     raw_views.push((c, f, start, observed.len()));
-                    frame_seen[f] = true;
-                    cam_seen[c] = true;
                 }
             }
+        }
+        for &(c, f, _, _) in &raw_views {
+            cam_seen[c] = true;
+            frame_seen[f] = true;
         }
         if let Some(c) = cam_seen.iter().position(|s| !s) {
             return Err(AcmError::Invalid(format!(
@@ -365,7 +370,7 @@ impl CalibrationProblem {
     }
 
     /// Board → world rotation, its derivatives and translation of every view.
-    fn poses(&self, full: &[f64]) -> Vec<(Matrix3<f64>, [Matrix3<f64>; 3], Vector3<f64>)> {
+    fn poses(&self, full: &[f64]) -> Vec<ViewPose> {
         let o = N_CAM_PARAMS * self.n_cams;
         full[o..]
             .chunks_exact(N_VIEW_PARAMS)

@@ -190,7 +190,9 @@ def test_world_frame_from_board_and_points(four_cam):
     np.testing.assert_allclose(w.board_tvecs[f], 0, atol=1e-7)
     # Projections are unchanged by a change of world frame.
     pts = res.board_world_points()[f]
-    np.testing.assert_allclose(w.rig.project(w.board_world_points()[f]), res.rig.project(pts), atol=1e-6)
+    np.testing.assert_allclose(
+        w.rig.project(w.board_world_points()[f]), res.rig.project(pts), atol=1e-6
+    )
     # Three points: the board's origin, a point along its x axis and one along y.
     three = np.stack([pts[0], pts[1], pts[9]])
     wp = res.with_world_frame(points=three)

@@ -92,9 +92,7 @@ def load_acm_calibration(
         raise ValueError(f"{len(names)} names for {n} cameras")
     dist = np.zeros((n, 5))
     dist[:, : min(5, k.shape[1])] = k[:, :5]
-    rig = CameraRig(
-        Camera(mats[i], dist[i], r[i], t[i], image_size, names[i]) for i in range(n)
-    )
+    rig = CameraRig(Camera(mats[i], dist[i], r[i], t[i], image_size, names[i]) for i in range(n))
     if origin_coord is not None:
         oc = _load_dict(origin_coord, ("origin", "coord"))
         origin = np.asarray(oc["origin"], float).reshape(3)

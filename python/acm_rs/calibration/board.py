@@ -90,16 +90,16 @@ class BoardSpec:
         """Board from anipose keys (a ``[calibration]`` sub-table is looked into too)."""
         if "calibration" in d and isinstance(d["calibration"], dict):
             d = {**d, **d["calibration"]}
-        missing = [k for k in ("board_type", "board_size", "board_square_side_length") if k not in d]
+        missing = [
+            k for k in ("board_type", "board_size", "board_square_side_length") if k not in d
+        ]
         if missing:
             raise ValueError(f"board spec lacks {missing} (anipose keys, see docs/calibration.md)")
         return cls(
             board_type=str(d["board_type"]).lower(),
             squares=tuple(d["board_size"]),
             square_length=float(d["board_square_side_length"]),
-            marker_length=(
-                float(d["board_marker_length"]) if "board_marker_length" in d else None
-            ),
+            marker_length=(float(d["board_marker_length"]) if "board_marker_length" in d else None),
             marker_bits=int(d.get("board_marker_bits", 4)),
             dict_number=int(d.get("board_marker_dict_number", 50)),
             legacy_pattern=bool(d.get("legacy_pattern", False)),
@@ -197,7 +197,9 @@ class BoardSpec:
         board.setLegacyPattern(bool(self.legacy_pattern))
         return board
 
-    def render(self, pixels_per_square: int = 60, margin: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    def render(
+        self, pixels_per_square: int = 60, margin: int = 40
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Draw the board (uint8 grey image) for printing or synthetic tests.
 
         Returns

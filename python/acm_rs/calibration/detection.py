@@ -48,7 +48,9 @@ def detect_board(image: np.ndarray, spec: BoardSpec) -> np.ndarray:
         raise ValueError(f"images must be 8-bit, got {gray.dtype}")
     out = np.full((spec.n_points, 2), np.nan)
     if spec.board_type == "checkerboard":
-        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+        flags = (
+            cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+        )
         found, corners = cv2.findChessboardCorners(gray, spec.inner_corners, flags=flags)
         if not found or corners is None:
             return out
@@ -206,9 +208,11 @@ def detect(
     for p in paths:
         if not p.exists():
             raise ValueError(f"{p} does not exist")
-    names = list(camera_names) if camera_names is not None else [
-        p.name if p.is_dir() else p.stem for p in paths
-    ]
+    names = (
+        list(camera_names)
+        if camera_names is not None
+        else [p.name if p.is_dir() else p.stem for p in paths]
+    )
     if len(names) != len(paths):
         raise ValueError(f"{len(names)} camera names for {len(paths)} sources")
     if len(set(names)) != len(names):

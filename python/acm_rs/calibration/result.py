@@ -224,7 +224,9 @@ class CalibrationResult:
         for k in order[:worst]:
             c, f = np.unravel_index(k, pair_rms.shape)
             if np.isfinite(pair_rms[c, f]):
-                worst_list.append({"camera": names[c], "view": int(f), "rms_px": _f(pair_rms[c, f])})
+                worst_list.append(
+                    {"camera": names[c], "view": int(f), "rms_px": _f(pair_rms[c, f])}
+                )
         out_idx = np.argwhere(finite & (np.where(finite, e, 0) > thr))
         out_err = e[tuple(out_idx.T)]
         out_idx = out_idx[np.argsort(-out_err)]
@@ -418,7 +420,9 @@ class CalibrationResult:
         return len(set(zip(gx.tolist(), gy.tolist(), strict=True))) / COVERAGE_GRID**2
 
     def _scale_ratio(self) -> float | None:
-        pts = world.triangulate(self.rig, np.where(np.isfinite(self.errors)[..., None], self.corners, np.nan))
+        pts = world.triangulate(
+            self.rig, np.where(np.isfinite(self.errors)[..., None], self.corners, np.nan)
+        )
         pairs, dist = _neighbour_pairs(self.board_points)
         if len(pairs) == 0:
             return None

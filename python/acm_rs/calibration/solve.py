@@ -172,9 +172,7 @@ def calibrate(
 
     c, b, sizes = _check_inputs(corners, board_points, image_size)
     n_cams, n_frames, n_points = c.shape[:3]
-    names = (
-        [f"cam_{i}" for i in range(n_cams)] if camera_names is None else list(camera_names)
-    )
+    names = [f"cam_{i}" for i in range(n_cams)] if camera_names is None else list(camera_names)
     if len(names) != n_cams or len(set(names)) != n_cams:
         raise ValueError(f"camera_names must be {n_cams} unique names, got {names}")
     if not 0 <= int(reference_camera) < n_cams:
@@ -305,7 +303,7 @@ def _sym_inverse_sqrt_factor(g: np.ndarray) -> np.ndarray:
         return v / np.sqrt(np.maximum(w, 1e-12 * max(w.max(), 1e-300)))
 
 
-def schur_preconditioner(jac0, n_cam_cols: int, free: np.ndarray) -> csr_matrix:
+def schur_preconditioner(jac0, n_cam_cols: int, free: np.ndarray):
     """Linear change of variables ``x = M z`` that whitens the Gauss-Newton matrix at x0.
 
     The columns are the camera parameters (first ``n_cam_cols``) and the board-view poses
@@ -314,8 +312,9 @@ def schur_preconditioner(jac0, n_cam_cols: int, free: np.ndarray) -> csr_matrix:
     orthogonal to every pose column: the Schur complement ``S`` of the pose blocks), and each
     camera's block of ``S`` and each pose block are whitened by their Cholesky factors. Then
     ``(J0 M)^T (J0 M)`` is the identity up to the camera-camera coupling, and LSMR inside the
-    trust-region solver needs a few iterations per step instead of hundreds. The problem is unchanged (an invertible linear map); this is
-    the role of the normalisation of supp. sec. 3.3 here.
+    trust-region solver needs a few iterations per step instead of hundreds. The problem is
+    unchanged (an invertible linear map); this is the role of the normalisation of supp.
+    sec. 3.3 here.
 
     Parameters
     ----------

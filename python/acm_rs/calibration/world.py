@@ -68,8 +68,12 @@ def transform_rig(rig: CameraRig, rot: np.ndarray, origin: np.ndarray) -> Camera
         r = cam.rotation_matrix
         cams.append(
             Camera(
-                cam.matrix, cam.dist, rodrigues_inverse(r @ rot), r @ origin + cam.tvec,
-                cam.size, cam.name,
+                cam.matrix,
+                cam.dist,
+                rodrigues_inverse(r @ rot),
+                r @ origin + cam.tvec,
+                cam.size,
+                cam.name,
             )  # fmt: skip
         )
     return CameraRig(cams)
@@ -102,9 +106,9 @@ def triangulate(rig: CameraRig, pixels: np.ndarray) -> np.ndarray:
         ok = np.isfinite(flat[i]).all(1)
         if not ok.any():
             continue
-        und = cv2.undistortPoints(
-            flat[i, ok].reshape(-1, 1, 2), cam.matrix, cam.dist
-        ).reshape(-1, 2)
+        und = cv2.undistortPoints(flat[i, ok].reshape(-1, 1, 2), cam.matrix, cam.dist).reshape(
+            -1, 2
+        )
         proj = np.hstack([cam.rotation_matrix, cam.tvec[:, None]])
         a[ok, 2 * i] = und[:, :1] * proj[2] - proj[0]
         a[ok, 2 * i + 1] = und[:, 1:] * proj[2] - proj[1]
