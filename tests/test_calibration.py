@@ -297,3 +297,20 @@ def test_native_errors_are_value_errors(small):
         _native.NativeCalibration(
             small.board_points, small.corners, 0, np.zeros(n_full), np.zeros(n_full, bool)
         )
+
+
+def test_reversed_checkerboard_order_is_unified():
+    rec = make_recording(n_cams=4, n_frames=40, seed=6, dropout=0.0)
+    corners = rec.corners.copy()
+    complete = np.isfinite(corners[..., 0]).all(-1)
+    pairs = np.argwhere(complete)
+    # Reverse the corner order of a few complete detections (not the whole view).
+    multi = [(c, f) for c, f in pairs if complete[:, f].sum() >= 3][::7][:6]
+    for c, f in multi:
+        corners[c, f] = corners[c, f, ::-1]
+    with pytest.warns(UserWarning, match="reversed corner order"):
+        res = calibrate(corners, rec.board_points, SIZE)
+    assert res.info["n_reversed_detections"] == len(multi)
+    assert res.rms < 0.5
+    for ct, ce in zip(rec.rig, res.rig, strict=True):
+        assert np.linalg.norm(ct.center - ce.center) < 3.0

@@ -6,7 +6,9 @@
 3. Camera-to-camera poses from every view two cameras share, averaged robustly (medoid
    rotation, inliers within a few median deviations, chordal mean; median translation), chained
    from the reference camera over a maximum spanning tree of the shared-view graph.
-4. Board → world pose of each view from the camera that saw most of its corners.
+4. For boards symmetric under a half turn (checkerboards), complete detections reported in
+   reversed corner order by one camera are reversed to agree with the other cameras.
+5. Board → world pose of each view from the camera that saw most of its corners.
 """
 
 from __future__ import annotations
@@ -38,12 +40,18 @@ class Initialisation:
         Board → camera pose of every usable (camera, view) detection; NaN elsewhere.
     tree : list of (int, int, int)
         Spanning-tree edges ``(parent, child, n_shared_views)`` used for chaining.
+    corners : numpy.ndarray, shape (n_cams, n_frames, n_points, 2)
+        The detections with a consistent corner order (see ``_unify_corner_order``).
+    n_reversed : int
+        Complete detections whose corner order was reversed.
     """
 
     cameras: np.ndarray
     poses: np.ndarray
     view_poses: np.ndarray
     tree: list[tuple[int, int, int]]
+    corners: np.ndarray
+    n_reversed: int = 0
 
     @property
     def used_frames(self) -> np.ndarray:
@@ -307,6 +315,12 @@ def initialise(
         cams[c, :6] = [k[0, 0], k[1, 1], k[0, 2], k[1, 2], d[0], d[1]]
         vp[c] = view_poses(corners[c], board_points, k, d, usable[c])
     ext, tree = chain_cameras(vp, reference, names)
+    corners, n_reversed = _unify_corner_order(corners, board_points, cams, ext, vp, usable)
+    if n_reversed:
+        for c in range(n_cams):
+            k, d = _matrix(cams[c]), cams[c, 4:6]
+            vp[c] = view_poses(corners[c], board_points, k, d, usable[c])
+        ext, tree = chain_cameras(vp, reference, names)
     cams[:, 6:] = ext
     # Board → world from the camera with most corners in each view.
     n_corners = np.where(np.isfinite(vp[..., 0]), np.isfinite(corners[..., 0]).sum(-1), -1)
@@ -323,4 +337,66 @@ def initialise(
             f"only {int(np.isfinite(poses[:, 0]).sum())} board views have a pose (need >= "
             f"{MIN_VIEWS})"
         )
-    return Initialisation(cams, poses, vp, tree)
+    return Initialisation(cams, poses, vp, tree, corners, n_reversed)
+
+
+def _matrix(cam12: np.ndarray) -> np.ndarray:
+    return np.array([[cam12[0], 0.0, cam12[2]], [0.0, cam12[1], cam12[3]], [0.0, 0.0, 1.0]])
+
+
+def _reversed(corners, board_points, cams, ext, vp, ref: int, c: int, f: int) -> bool:
+    """Whether camera c's detection of view f matches the pose seen by camera ref much better
+    in reversed corner order."""
+    import cv2
+
+    r_ref, t_ref = _rt(ext[ref, :3], ext[ref, 3:])
+    r_b, t_b = _rt(vp[ref, f, :3], vp[ref, f, 3:])
+    r_w, t_w = r_ref.T @ r_b, r_ref.T @ (t_b - t_ref)  # board -> world
+    r_c, t_c = _rt(ext[c, :3], ext[c, 3:])
+    d5 = np.array([cams[c, 4], cams[c, 5], 0.0, 0.0, 0.0])
+    pred = cv2.projectPoints(board_points, _rvec(r_c @ r_w), r_c @ t_w + t_c, _matrix(cams[c]), d5)[
+        0
+    ].reshape(-1, 2)
+    fwd = np.median(np.linalg.norm(corners[c, f] - pred, axis=1))
+    rev = np.median(np.linalg.norm(corners[c, f, ::-1] - pred, axis=1))
+    return bool(fwd > 5.0 and rev * 3 < fwd)
+
+
+def _unify_corner_order(corners, board_points, cams, ext, vp, usable):
+    """Make the corner order of complete detections of a 180°-symmetric board consistent
+    across the cameras of each view.
+
+    OpenCV may report a checkerboard whose pattern is symmetric under a half turn in either
+    order. For each view, the board pose seen by one camera is projected into the others
+    (with the chained extrinsics); a complete detection that matches that projection much
+    better in reversed order (median error at least 3× smaller and the forward error above
+    5 px) is reversed. The reference camera of the view is the one needing fewest reversals.
+    Returns ``(corners, n_reversed)``.
+    """
+    b2 = board_points[:, :2]
+    centre = b2.mean(0)
+    scale = max(np.ptp(b2), 1e-300)
+    if np.abs(b2[::-1] - (2 * centre - b2)).max() > 1e-9 * scale:
+        return corners, 0
+    complete = np.isfinite(corners[..., 0]).all(-1)
+    have = np.isfinite(vp[..., 0])
+    out = corners
+    n = 0
+    for f in np.flatnonzero((have & complete).sum(0) >= 2):
+        cands = np.flatnonzero(have[:, f] & complete[:, f])
+        # Try every camera's order as the reference; keep the one needing fewest reversals.
+        best: list[int] | None = None
+        for ref in cands:
+            flips = [
+                c
+                for c in cands
+                if c != ref and _reversed(corners, board_points, cams, ext, vp, ref, c, f)
+            ]
+            if best is None or len(flips) < len(best):
+                best = flips
+        for c in best or []:
+            if out is corners:
+                out = corners.copy()
+            out[c, f] = corners[c, f, ::-1]
+            n += 1
+    return out, n

@@ -190,6 +190,13 @@ def calibrate(
     t1 = time.perf_counter()
 
     used = init.used_frames
+    if init.n_reversed:
+        warnings.warn(
+            f"{init.n_reversed} checkerboard detections were in reversed corner order "
+            "(a half-turn-symmetric board) and were reordered",
+            stacklevel=2,
+        )
+    c = init.corners
     c_used = c.copy()
     c_used[:, ~used] = np.nan
     # Board poses are refined about the board's centroid (not its first corner): same
@@ -272,6 +279,7 @@ def calibrate(
             "loss": loss,
             "f_scale": float(f_scale),
             "n_free_parameters": int(prob.n_free),
+            "n_reversed_detections": int(init.n_reversed),
             "jacobian_nnz": int(prob.nnz),
             "nfev": int(sol.nfev),
             "njev": int(sol.njev or 0),
