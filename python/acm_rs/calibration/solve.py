@@ -169,6 +169,7 @@ def calibrate(
     from scipy.optimize import least_squares
     from scipy.sparse import csr_matrix
     from scipy.sparse.linalg import spsolve
+    from threadpoolctl import threadpool_limits
 
     c, b, sizes = _check_inputs(corners, board_points, image_size)
     n_cams, n_frames, n_points = c.shape[:3]
@@ -228,11 +229,14 @@ def calibrate(
     def jac(z: np.ndarray) -> csr_matrix:
         return (jac_x(m @ z) @ m).tocsr()
 
-    sol = least_squares(
-        fun, z0, jac=jac, method="trf", x_scale="jac", loss=loss,
-        f_scale=f_scale, tr_solver="lsmr", tr_options={"atol": 1e-10, "btol": 1e-10},
-        ftol=1e-10, xtol=1e-10, gtol=1e-10, max_nfev=max_nfev,
-    )  # fmt: skip
+    # One BLAS thread: LSMR's vector operations are far too small to gain from threads, and
+    # spinning BLAS threads next to rayon's slow the solve down several-fold on small machines.
+    with threadpool_limits(limits=1, user_api="blas"):
+        sol = least_squares(
+            fun, z0, jac=jac, method="trf", x_scale="jac", loss=loss, f_scale=f_scale,
+            tr_solver="lsmr", tr_options={"atol": 1e-10, "btol": 1e-10},
+            ftol=1e-10, xtol=1e-10, gtol=1e-10, max_nfev=max_nfev,
+        )  # fmt: skip
     t2 = time.perf_counter()
     if sol.status == 0:
         warnings.warn(
