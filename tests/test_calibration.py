@@ -267,6 +267,11 @@ def test_infinite_corners_and_shapes(small):
     corners[0, 3, 4, 1] = np.inf
     with pytest.raises(ValueError, match="infinity.*camera 0, frame 3, point 4"):
         calibrate(corners, small.board_points, SIZE)
+    half = small.corners.copy()
+    half[1, 2, 3, 0] = np.nan
+    half[1, 2, 3, 1] = 100.0
+    with pytest.raises(ValueError, match="one NaN coordinate"):
+        calibrate(half, small.board_points, SIZE)
     with pytest.raises(ValueError, match="n_cams, n_frames, n_points, 2"):
         calibrate(small.corners[0], small.board_points, SIZE)
     with pytest.raises(ValueError, match="board_points has"):
@@ -314,3 +319,10 @@ def test_reversed_checkerboard_order_is_unified():
     assert res.rms < 0.5
     for ct, ce in zip(rec.rig, res.rig, strict=True):
         assert np.linalg.norm(ct.center - ce.center) < 3.0
+
+
+def test_single_camera():
+    rec = make_recording(n_cams=3, n_frames=30, seed=8)
+    res = calibrate(rec.corners[1:2], rec.board_points, SIZE)
+    np.testing.assert_allclose(res.rig[0].params[6:8], rec.rig[1].params[6:8], rtol=5e-3)
+    assert res.rms < 0.5

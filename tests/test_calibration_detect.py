@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from calib_synthetic import render_views
@@ -102,6 +104,9 @@ def test_images_to_calibration_cli_with_cache(tmp_path, monkeypatch, capsys):
         assert np.linalg.norm(ce.center - ct.center) < 5.0  # mm, cameras ~0.5 m away
     for suffix in (".report.json", ".qc.png", ".detections.npz"):
         assert (tmp_path / f"calibration{suffix}").exists()
+    rep = json.loads((tmp_path / "calibration.report.json").read_text())
+    assert rep["plausibility"]["ok"], rep["plausibility"]
+    assert rep["summary"]["rms_px"] < 0.6
     # An existing output is kept unless --overwrite.
     assert main(argv) == 1
     assert "--overwrite" in capsys.readouterr().err

@@ -398,11 +398,17 @@ class CalibrationResult:
         span = float(np.nanmax(np.ptp(pts[np.isfinite(pts[:, 0])], axis=0))) if len(pts) else 1.0
         for cam, name in zip(self.rig, self.camera_names, strict=True):
             c = cam.center
-            z = cam.rotation_matrix[2] * 0.15 * span
+            z = cam.rotation_matrix[2] * 0.3 * span
             ax3.scatter(*c, s=30)
             ax3.plot(*np.stack([c, c + z]).T, "k-", lw=1)
             ax3.text(*c, name, fontsize=8)
-        ax3.set_title("cameras and board corners (world frame)", fontsize=9)
+        every = np.vstack([pts[np.isfinite(pts[:, 0])], [c.center for c in self.rig]])
+        mid, half = every.mean(0), np.ptp(every, axis=0).max() / 2
+        ax3.set_xlim(mid[0] - half, mid[0] + half)
+        ax3.set_ylim(mid[1] - half, mid[1] + half)
+        ax3.set_zlim(mid[2] - half, mid[2] + half)
+        ax3.set_box_aspect((1, 1, 1))
+        ax3.set_title("cameras (optical axes) and board corners, world frame", fontsize=9)
         fig.suptitle(f"calibration QC: rms {self.rms:.3f} px over {np.isfinite(e).sum()} corners")
         return fig
 

@@ -87,6 +87,13 @@ def _check_inputs(corners, board_points, image_size):
             f"corners contain infinity (camera {idx[0]}, frame {idx[1]}, point {idx[2]}); "
             "use NaN for undetected corners"
         )
+    half = np.isnan(c[..., 0]) != np.isnan(c[..., 1])
+    if half.any():
+        idx = np.argwhere(half)[0]
+        raise ValueError(
+            f"corners: camera {idx[0]}, frame {idx[1]}, point {idx[2]} has one NaN coordinate "
+            "(an undetected corner must be NaN in both)"
+        )
     b = np.asarray(board_points, dtype=np.float64)
     if b.ndim != 2 or b.shape[1] != 3:
         raise ValueError(f"board_points must have shape (n_points, 3), got {b.shape}")
