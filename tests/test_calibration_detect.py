@@ -139,3 +139,16 @@ def test_video_sources_with_stride(tmp_path):
     ok = np.isfinite(det.corners[..., 0])
     err = np.linalg.norm(det.corners - rendered.pixels[:, ::2], axis=-1)[ok]
     assert ok.sum() > 30 and np.median(err) < 0.6
+
+
+def test_charuco_images_calibrate_end_to_end():
+    rendered = render_views(CHARUCO, n_cams=3, n_frames=10, seed=6)
+    corners = np.stack(
+        [np.stack([detect_board(img, CHARUCO) for img in frames]) for frames in rendered.images]
+    )
+    res = acm_rs.calibrate(corners, CHARUCO.board_points, (640, 480))
+    assert res.rms < 0.6
+    assert res.plausibility()["ok"]
+    for ct, ce in zip(rendered.rig, res.rig, strict=True):
+        np.testing.assert_allclose(ce.params[6:8], ct.params[6:8], rtol=0.02)
+        assert np.linalg.norm(ce.center - ct.center) < 6.0
