@@ -1,10 +1,11 @@
 """``calibrate``: initialisation + refinement of eq. 7 (ACM supp. sec. 2.2).
 
-The refinement minimises eq. 7 with ``scipy.optimize.least_squares(method="trf")``; residuals
-and the exact sparse Jacobian (CSR, fixed pattern) come from Rust (``NativeCalibration``,
-``src/calibration.rs``). Parameters are scaled by ``x_scale="jac"`` (the column norms of the
-Jacobian), which plays the role of the normalisation of supp. sec. 3.3 for every parameter
-type at once; residuals stay in pixels so that costs and tolerances are readable.
+The refinement minimises eq. 7 with ``scipy.optimize.least_squares(method="trf",
+x_scale="jac")``; residuals and the exact sparse Jacobian (CSR, fixed pattern) come from Rust
+(``NativeCalibration``, ``src/calibration.rs``). For conditioning (the role of supp. sec. 3.3's
+normalisation) board poses are refined about the board's centroid and the solver works in
+variables ``z`` with ``x = M z`` (:func:`schur_preconditioner`); residuals stay in pixels so
+that costs and tolerances are readable.
 """
 
 from __future__ import annotations
