@@ -7,6 +7,7 @@
 //! |---|---|
 //! | [`rotation`] | sec. 1, eqs. 1-3 (Rodrigues) |
 //! | [`camera`] | sec. 2.1, eqs. 4-6 (pinhole + distortion) |
+//! | [`calibration`] | sec. 2.2, eq. 7 (multi-camera calibration, sparse Jacobian) |
 //! | [`skeleton`] | sec. 3.1, Alg. 1, eq. 8 (forward kinematics) |
 //! | [`symmetry`] | sec. 3.4, Alg. 2-3 |
 //! | [`normalization`] | sec. 3.3, eq. 11 |
@@ -19,6 +20,7 @@
 //! The core is pure Rust (no Python); the `python` cargo feature adds the pyo3 bindings in
 //! `src/python/`.
 
+pub mod calibration;
 pub mod camera;
 pub mod emission;
 pub mod error;

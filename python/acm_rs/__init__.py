@@ -9,6 +9,7 @@ joint-limit state map (Alg. 10), all with exact derivatives computed in Rust.
 from . import (
     acm_formats,
     batch,
+    calibration,
     datasets,
     dlc,
     export,
@@ -19,6 +20,7 @@ from . import (
     project,
 )
 from ._native import AcmNumericalError
+from .calibration import CalibrationResult, calibrate
 from .camera import PARAM_NAMES, Camera, CameraRig
 from .learning import LearnedSkeleton, fit_pose, learn_skeleton
 from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
@@ -31,6 +33,7 @@ __version__ = "0.1.0"
 __all__ = [
     "AcmNumericalError",
     "BoneLengthConstraint",
+    "CalibrationResult",
     "Camera",
     "CameraRig",
     "FKJacobian",
@@ -44,6 +47,8 @@ __all__ = [
     "__version__",
     "acm_formats",
     "batch",
+    "calibrate",
+    "calibration",
     "datasets",
     "dlc",
     "export",

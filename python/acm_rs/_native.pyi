@@ -1,4 +1,6 @@
 # Type stubs of the private native module built from src/python/ (pyo3).
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -124,3 +126,81 @@ def gapfill_fill(
     memo_tol: float,
     seed: int,
 ) -> tuple[F64, F64 | None, dict[str, object]]: ...
+
+class NativeCalibration:
+    """Eq. 7 residuals and exact CSR Jacobian (layout in src/calibration.rs)."""
+
+    def __init__(
+        self,
+        board: F64,
+        corners: F64,
+        reference: int,
+        params0: F64,
+        fixed: NDArray[np.bool_],
+    ) -> None: ...
+    @property
+    def n_free(self) -> int: ...
+    @property
+    def n_full(self) -> int: ...
+    @property
+    def n_observations(self) -> int: ...
+    @property
+    def nnz(self) -> int: ...
+    @property
+    def free_indices(self) -> I64: ...
+    @property
+    def observation_index(self) -> I64: ...
+    @property
+    def indptr(self) -> NDArray[np.int32]: ...
+    @property
+    def indices(self) -> NDArray[np.int32]: ...
+    def full_params(self, x: F64) -> F64: ...
+    def residuals(self, x: F64) -> tuple[F64, int]: ...
+    def jacobian_data(self, x: F64) -> F64: ...
+
+class NativeTracker:
+    """UKF / unscented RTS smoother / EM of ACM supp. sec. 4 (see src/tracking/)."""
+
+    def __init__(
+        self,
+        skeleton: NativeSkeleton,
+        params: F64,
+        lower: F64,
+        upper: F64,
+        norm: tuple[float, float, float, float],
+        joint_limits: bool,
+        x: F64,
+    ) -> None: ...
+    @property
+    def n_state(self) -> int: ...
+    @property
+    def n_frames(self) -> int: ...
+    def run_em(
+        self,
+        mu0: F64,
+        v0: F64,
+        vz: F64,
+        vx: F64,
+        max_iter: int,
+        tol: float,
+        gate: float | None = None,
+        callback: Callable[[int, float, float, dict[str, int]], bool | None] | None = None,
+    ) -> tuple[dict[str, F64], list[dict[str, float]], bool, bool]: ...
+    def e_step(
+        self,
+        mu0: F64,
+        v0: F64,
+        vz: F64,
+        vx: F64,
+        gate: float | None = None,
+        smooth: bool = True,
+    ) -> dict[str, int]: ...
+    def m_step(self, mu0: F64, v0: F64, vz: F64, vx: F64) -> dict[str, F64]: ...
+    def means(self) -> F64: ...
+    def covs(self) -> F64: ...
+    def mask(self) -> NDArray[np.uint8]: ...
+    def posterior(self) -> tuple[F64, F64, F64, F64, F64]: ...
+
+def smooth_bundle(
+    input: str, output: str, keep_cov: bool = True
+) -> tuple[int, int, bool, float]: ...

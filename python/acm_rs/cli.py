@@ -148,6 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .gapfill.cli import add_subcommands as add_gapfill
 
     add_gapfill(sub)
+    from .calibration.cli import add_subcommand as add_calibrate
+
+    add_calibrate(sub)
     return p
 
 

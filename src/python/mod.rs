@@ -3,6 +3,7 @@
 //! GIL released. The Python package (`python/acm_rs/`) normalises dtype and contiguity before
 //! calling in.
 
+mod calibration;
 mod error;
 mod gapfill;
 mod learning;
@@ -599,6 +600,7 @@ fn native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<learning::PyLearning>()?;
     m.add_class::<tracking::PyTracker>()?;
     m.add_function(wrap_pyfunction!(tracking::smooth_bundle, m)?)?;
+    m.add_class::<calibration::PyCalibration>()?;
     m.add("AcmNumericalError", m.py().get_type::<AcmNumericalError>())?;
     m.add("N_CAMERA_PARAMS", camera::N_PARAMS)?;
     gapfill::register(m)?;

@@ -1,0 +1,30 @@
+"""Multi-camera calibration (ACM supplement section 2.2, eq. 7).
+
+Board detection with OpenCV (:mod:`.detection`, :class:`BoardSpec`), initialisation without
+guesses (:mod:`.initialise`), refinement of eq. 7 with scipy's trust-region-reflective solver
+on residuals and exact sparse Jacobians from Rust (:func:`calibrate`), a QC report
+(:class:`CalibrationResult`), anipose ``calibration.toml`` output and ACM
+``multicalibration.npy`` import (:mod:`.acm`). See ``docs/calibration.md``.
+"""
+
+from .acm import load_acm_calibration, save_acm_calibration
+from .board import BoardSpec
+from .detection import Detections, detect, detect_board
+from .result import CalibrationResult
+from .solve import CAMERA_PARAMS, calibrate
+from .world import frame_from_points, transform_rig, triangulate
+
+__all__ = [
+    "BoardSpec",
+    "CAMERA_PARAMS",
+    "CalibrationResult",
+    "Detections",
+    "calibrate",
+    "detect",
+    "detect_board",
+    "frame_from_points",
+    "load_acm_calibration",
+    "save_acm_calibration",
+    "transform_rig",
+    "triangulate",
+]
