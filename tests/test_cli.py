@@ -13,15 +13,25 @@ from acm_rs.demo import demo_pose, demo_rig
 
 def test_demo_writes_pictures_and_consistent_projections(tmp_path, capsys):
     argv = ["demo", "--out", str(tmp_path), "--frames", "2000", "--learn-frames", "30"]
-    assert main(argv) == 0
+    assert main([*argv, "--track-frames", "60"]) == 0
     out = capsys.readouterr().out
     assert "2,000 poses" in out and "skeleton learning from 30 labelled frames" in out
+    assert "calibration from" in out and "tracking 60 frames" in out
     learned = acm_rs.Skeleton.load(tmp_path / "learned_rat.toml")
     assert learned.n_bones == 28
-    assert acm_rs.CameraRig.load(tmp_path / "calibration.toml").names == demo_rig().names
+    rig = acm_rs.CameraRig.load(tmp_path / "calibration.toml")
+    assert rig.names == demo_rig().names
+    # The calibrated rig (world frame from the board on the floor) is close to the truth.
+    for cal, true in zip(rig, demo_rig(), strict=True):
+        assert np.linalg.norm(cal.center - true.center) < 0.5  # cm
+    res = acm_rs.PoseResult.load(tmp_path / "pose.npz")
+    assert res.joints.shape == (60, 29, 3)
+    for name in ("pose_3d.csv", "pose.nwb", "pose.c3d", "plots/joint_traces.png"):
+        assert (tmp_path / name).is_file()
     for name in (
         "rat_model.png",
         "camera_views.png",
+        "calibration_qc.png",
         "learn_reprojection.png",
         "learn_skeleton.png",
     ):

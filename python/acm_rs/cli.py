@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from collections.abc import Sequence
 
 from . import __version__
@@ -12,19 +13,25 @@ from . import __version__
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    res = run_demo(args.out, frames=args.frames, seed=args.seed, learn_frames=args.learn_frames)
+    start = time.perf_counter()
+    res = run_demo(
+        args.out, frames=args.frames, seed=args.seed, learn_frames=args.learn_frames,
+        track_frames=args.track_frames,
+    )  # fmt: skip
     rate = res.n_frames / res.seconds if res.seconds > 0 else float("inf")
     print(f"acm-rs demo: rat model (29 joints, 43 markers) in a 4-camera rig -> {res.out}/")
     print(
         f"  forward kinematics + projection of {res.n_frames:,} poses into 4 cameras: "
         f"{res.seconds:.3f} s ({rate:,.0f} poses/s)"
     )
-    report = res.learning_report()
-    if report:
-        print(report)
-    for f in res.files:
-        print(f"  wrote {f}")
-    print(f"open {res.out}/camera_views.png and {res.out}/learn_reprojection.png to look")
+    for report in (res.calibration_report(), res.learning_report(), res.tracking_report()):
+        if report:
+            print(report)
+    print(f"  {len(res.files)} files written; whole demo {time.perf_counter() - start:.1f} s")
+    look = ["camera_views.png", "calibration_qc.png", "learn_reprojection.png"]
+    if res.tracked is not None:
+        look += ["plots/joint_traces.png", "plots/skeleton_snapshots.png"]
+    print("look at: " + ", ".join(str(res.out / f) for f in look if (res.out / f).exists()))
     return 0
 
 
@@ -105,13 +112,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"acm-rs {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser(
-        "demo", help="pose the rat model in a 4-camera rig, learn a skeleton, save pictures"
+        "demo", help="the whole pipeline on a synthetic rat: calibrate, learn, track, export, plots"
     )
     d.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     d.add_argument("--frames", type=int, default=100_000, help="poses for the timing")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument(
         "--learn-frames", type=int, default=100, help="labelled frames for skeleton learning"
+    )
+    d.add_argument(
+        "--track-frames", type=int, default=400, help="frames of the behaviour sequence to track"
     )
     d.set_defaults(func=_cmd_demo)
     m = sub.add_parser("model", help="list the bundled models or describe one")
