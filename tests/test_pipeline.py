@@ -78,3 +78,14 @@ def test_unknown_step_and_missing_calibration(project, tmp_path):
     write_dlc(tmp_path / "s" / "pose-2d", rig, sk, det, lik)
     status = acm_rs.pipeline.run_all(tmp_path, steps=("track",))
     assert "no calibration file" in status["s"]
+
+
+def test_batch_runs_the_default_session_pipeline(project, capsys):
+    root, truth = project
+    code = main(["batch", str(root), "--sessions", "s2", "--overwrite", "--workers", "2"])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "1 sessions: 1 done, 0 skipped (finished before), 0 failed" in out
+    res = acm_rs.PoseResult.load(root / "s2" / "acm-rs" / "pose.npz")
+    assert np.median(np.linalg.norm(res.joints - truth["s2"], axis=-1)) < 0.5
+    assert acm_rs.batch.is_done(root / "s2")
