@@ -89,3 +89,18 @@ def test_batch_runs_the_default_session_pipeline(project, capsys):
     res = acm_rs.PoseResult.load(root / "s2" / "acm-rs" / "pose.npz")
     assert np.median(np.linalg.norm(res.joints - truth["s2"], axis=-1)) < 0.5
     assert acm_rs.batch.is_done(root / "s2")
+
+
+def test_step_commands_work_on_a_project_folder(project, capsys):
+    root, _ = project
+    csv = root / "s1" / "acm-rs" / "pose_3d.csv"
+    before = csv.stat().st_mtime_ns
+    # The broken session has no result to export: exit 1, the others are redone.
+    assert main(["export", "--project", str(root), "--overwrite-step"]) == 1
+    assert csv.stat().st_mtime_ns != before
+    assert main(["track", "--project", str(root)]) == 1
+    assert "exists, skipped" in capsys.readouterr().out
+    assert main(["learn", "--calibration", "c.toml"]) == 1
+    assert "needs --labels, --output (or --project DIR" in capsys.readouterr().err
+    assert main(["calibrate", "--board", "b.toml", "-o", "c.toml"]) == 1
+    assert "needs --videos or --images" in capsys.readouterr().err

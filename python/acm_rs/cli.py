@@ -108,6 +108,8 @@ def _cmd_learn(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``acm-rs``."""
+    from .pipeline import add_project_option, project_step_or
+
     p = argparse.ArgumentParser(prog="acm-rs", description=__doc__)
     p.add_argument("--version", action="version", version=f"acm-rs {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
@@ -132,18 +134,21 @@ def build_parser() -> argparse.ArgumentParser:
     lp = sub.add_parser(
         "learn", help="learn bone lengths and marker offsets from labelled frames (sec. 3.2)"
     )
-    lp.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    lp.add_argument("--calibration", help="anipose calibration.toml")
     lp.add_argument("--camera-names", nargs="+", help="cameras to use, in label-file order")
     lp.add_argument("--model", default="rat", help="bundled model name or skeleton TOML")
-    lp.add_argument(
-        "--labels", nargs="+", required=True, help="DeepLabCut CollectedData .csv/.h5, per camera"
-    )
+    lp.add_argument("--labels", nargs="+", help="DeepLabCut CollectedData .csv/.h5, per camera")
     lp.add_argument("--individual", help="individual to use in multi-animal label files")
     lp.add_argument("--body-weight", type=float, help="body weight (g) for bone-length priors")
     lp.add_argument("--no-symmetry", action="store_true", help="do not enforce left/right symmetry")
-    lp.add_argument("-o", "--output", required=True, help="learned skeleton TOML to write")
+    lp.add_argument("-o", "--output", help="learned skeleton TOML to write")
     lp.add_argument("--plots", help="folder for the reprojection and skeleton figures")
-    lp.set_defaults(func=_cmd_learn)
+    add_project_option(lp, "learn")
+    lp.set_defaults(
+        func=lambda a: project_step_or(
+            a, "learn", _cmd_learn, ("--calibration", "--labels", "--output")
+        )
+    )
     from .batch import add_subcommands as add_batch
     from .pipeline import add_subcommands as add_pipeline
     from .project import add_subcommands as add_init

@@ -38,6 +38,18 @@ def individual_skeleton(
     return skeleton.with_parameters(sym.expand_lengths(l_red), sym.expand_offsets(v_red))
 
 
+def _global_rotation(heading: np.ndarray, tilt: np.ndarray) -> np.ndarray:
+    """(n, 3) Rodrigues vectors of a body turned by ``heading`` about the arena's z (up) axis
+    and tilted by ``tilt`` (n, 3), from ACM's body frame (``BODY_TO_ARENA``)."""
+    n = len(heading)
+    glob = (
+        rodrigues(np.stack([np.zeros(n), np.zeros(n), heading], axis=1))
+        @ rodrigues(tilt)
+        @ rodrigues(BODY_TO_ARENA)
+    )
+    return rodrigues_inverse(glob)
+
+
 def random_poses(
     skeleton: Skeleton,
     n: int,
@@ -63,12 +75,7 @@ def random_poses(
     _, r = sm.to_pose(z)
     heading = rng.uniform(-np.pi, np.pi, n)
     tilt = rng.normal(scale=0.15, size=(n, 3)) * [1.0, 1.0, 0.0]
-    glob = (
-        rodrigues(np.stack([np.zeros(n), np.zeros(n), heading], axis=1))
-        @ rodrigues(tilt)
-        @ rodrigues(BODY_TO_ARENA)
-    )
-    r[:, 0] = rodrigues_inverse(glob)
+    r[:, 0] = _global_rotation(heading, tilt)
     t = np.column_stack([rng.uniform(-arena, arena, (n, 2)), np.full(n, height)])
     return t, r
 
@@ -139,14 +146,9 @@ def smooth_motion(
 
     z = spread * wave(sm.n_state)
     _, r = sm.to_pose(z)
-    heading = rng.uniform(-np.pi, np.pi) + 0.8 * wave(1)[:, 0] * speed**0
+    heading = rng.uniform(-np.pi, np.pi) + 0.8 * wave(1)[:, 0]
     tilt = 0.1 * wave(3) * [1.0, 1.0, 0.0]
-    glob = (
-        rodrigues(np.stack([np.zeros(n_frames), np.zeros(n_frames), heading], axis=1))
-        @ rodrigues(tilt)
-        @ rodrigues(BODY_TO_ARENA)
-    )
-    r[:, 0] = rodrigues_inverse(glob)
+    r[:, 0] = _global_rotation(heading, tilt)
     t = np.column_stack([arena * 0.8 * wave(2), height + 0.5 * wave(1)])
     return t, r
 

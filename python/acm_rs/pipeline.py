@@ -265,6 +265,19 @@ def step_plot(
     res = PoseResult.load(_session_output(session, out) / POSE_NAME)
     files = plot_all(res, folder, frame_rate=config.tracking.get("fps"))
     _say(f"plot {session.name}: {len(files)} figures in {folder}")
+    if session.videos and all(c in session.videos for c in session.cameras):
+        from .plots import overlay_video
+
+        dt = int(config.tracking["dt"])
+        try:
+            if dt != 1:
+                raise ValueError(f"tracking.dt = {dt}: the overlay needs every frame tracked")
+            files += overlay_video(
+                res, [session.videos[c] for c in session.cameras], folder / "overlay.mp4"
+            )
+            _say(f"plot {session.name}: overlay video {folder / 'overlay.mp4'}")
+        except ValueError as exc:  # e.g. videos longer than the tracked range
+            _say(f"plot {session.name}: no overlay video ({exc})")
     return files
 
 
@@ -319,6 +332,37 @@ def run_session(session_dir: str | Path, out_dir: str | Path) -> dict:
     files = step_export(config, s, True, out)
     plots = step_plot(config, s, True, out)
     return {"pose": str(pose), "exports": [str(f) for f in files], "plots": len(plots)}
+
+
+def run_step(project: str | Path, step: str, overwrite: bool = False) -> dict[str, str]:
+    """One step of the workflow on a project (``acm-rs <step> --project DIR``)."""
+    return run_all(project, overwrite=overwrite, steps=(step,))
+
+
+def add_project_option(parser, step: str) -> None:
+    """``--project DIR``: run this command as a step of the project workflow instead."""
+    parser.add_argument(
+        "--project",
+        help=f"run the {step} step on a project folder (config.toml; see docs/project.md) "
+        "instead of on the files given; other options are then ignored",
+    )
+    parser.add_argument(
+        "--overwrite-step", action="store_true", help="with --project: redo finished work"
+    )
+
+
+def project_step_or(args, step: str, func, required: tuple[str, ...]) -> int:
+    """Dispatch for commands that also work on a project folder: with ``--project`` run the
+    step there, else check the command's own required options and run ``func(args)``."""
+    if getattr(args, "project", None):
+        status = run_step(args.project, step, overwrite=args.overwrite_step)
+        return 0 if all(v == "ok" for v in status.values()) else 1
+    missing = [r for r in required if not getattr(args, r.lstrip("-").replace("-", "_"), None)]
+    if missing:
+        raise ValueError(
+            f"acm-rs {step} needs {', '.join(missing)} (or --project DIR for a project folder)"
+        )
+    return int(func(args))
 
 
 def _cmd_run_all(args) -> int:

@@ -4,7 +4,7 @@
 use super::error::to_py;
 use super::{alloc, cameras_from, norm_from, out, view, Arr, Out, PySkeleton};
 use crate::limits::StateMap;
-use crate::tracking::{moments, EmOptions, Params, SkeletonEmission, Tracker};
+use crate::tracking::{moments, EmOptions, FilterStats, Params, SkeletonEmission, Tracker};
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -30,6 +30,16 @@ impl PyTracker {
             vx: view(&p.3, "Vx_diag", &[Some(n_x)])?.to_vec(),
         })
     }
+}
+
+/// Counts of one E-step as a dict (`used`, `gated`, `invisible`, `gate_skipped_frames`).
+fn stats_dict<'py>(py: Python<'py>, s: &FilterStats) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("used", s.used)?;
+    d.set_item("gated", s.gated)?;
+    d.set_item("invisible", s.invisible)?;
+    d.set_item("gate_skipped_frames", s.gate_skipped_frames)?;
+    Ok(d)
 }
 
 fn params_out<'py>(py: Python<'py>, p: Params) -> PyResult<Bound<'py, PyDict>> {
@@ -119,11 +129,8 @@ impl PyTracker {
                         return false;
                     }
                     let Some(cb) = &callback else { return true };
-                    let stats = PyDict::new(py);
                     let fill = || -> PyResult<bool> {
-                        stats.set_item("used", it.stats.used)?;
-                        stats.set_item("gated", it.stats.gated)?;
-                        stats.set_item("invisible", it.stats.invisible)?;
+                        let stats = stats_dict(py, &it.stats)?;
                         let r = cb.call1(py, (it.iteration, it.delta, it.seconds, stats))?;
                         Ok(r.is_none(py) || r.is_truthy(py)?)
                     };
@@ -149,14 +156,10 @@ impl PyTracker {
             .history
             .iter()
             .map(|it| {
-                let d = PyDict::new(py);
+                let d = stats_dict(py, &it.stats)?;
                 d.set_item("iteration", it.iteration)?;
                 d.set_item("delta", it.delta)?;
                 d.set_item("seconds", it.seconds)?;
-                d.set_item("used", it.stats.used)?;
-                d.set_item("gated", it.stats.gated)?;
-                d.set_item("invisible", it.stats.invisible)?;
-                d.set_item("gate_skipped_frames", it.stats.gate_skipped_frames)?;
                 Ok(d)
             })
             .collect::<PyResult<Vec<_>>>()?;
@@ -192,11 +195,7 @@ impl PyTracker {
                 }
             })
             .map_err(to_py)?;
-        let d = PyDict::new(py);
-        d.set_item("used", s.used)?;
-        d.set_item("gated", s.gated)?;
-        d.set_item("invisible", s.invisible)?;
-        Ok(d)
+        stats_dict(py, &s)
     }
 
     /// The M-step from the last E-step (Alg. 12) → params dict.

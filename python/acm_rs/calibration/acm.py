@@ -22,19 +22,10 @@ from .world import transform_rig
 
 
 def _load_dict(path: str | Path, keys: tuple[str, ...]) -> dict:
-    p = Path(path)
-    try:
-        obj = np.load(p, allow_pickle=True)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{p}: cannot read ({exc})") from None
-    if isinstance(obj, np.ndarray) and obj.dtype == object and obj.shape == ():
-        obj = obj.item()
-    if not isinstance(obj, dict):
-        raise ValueError(f"{p}: expected a pickled dict, got {type(obj).__name__}")
-    missing = [k for k in keys if k not in obj]
-    if missing:
-        raise ValueError(f"{p}: lacks keys {missing} (has {sorted(map(str, obj))})")
-    return obj
+    """A trusted ACM pickle holding one dict with ``keys`` (see :mod:`acm_rs.acm_formats`)."""
+    from ..acm_formats import _load_dict as load
+
+    return load(Path(path), "ACM calibration", {k: "required" for k in keys})
 
 
 def load_acm_calibration(

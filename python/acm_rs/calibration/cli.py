@@ -8,6 +8,8 @@ from pathlib import Path
 
 def add_subcommand(sub) -> None:
     """Register ``calibrate`` on the ``acm-rs`` subparsers."""
+    from ..pipeline import add_project_option
+
     p = sub.add_parser(
         "calibrate",
         help="calibrate cameras from checkerboard/ChArUco videos or image folders (sec. 2.2)",
@@ -17,11 +19,11 @@ def add_subcommand(sub) -> None:
             "QC figure. Camera names default to the video stems / folder names."
         ),
     )
-    src = p.add_mutually_exclusive_group(required=True)
+    src = p.add_mutually_exclusive_group()
     src.add_argument("--videos", nargs="+", help="one video per camera")
     src.add_argument("--images", nargs="+", help="one image folder per camera")
-    p.add_argument("--board", required=True, help="board spec TOML (anipose keys)")
-    p.add_argument("-o", "--output", required=True, help="calibration.toml to write")
+    p.add_argument("--board", help="board spec TOML (anipose keys)")
+    p.add_argument("-o", "--output", help="calibration.toml to write")
     p.add_argument("--stride", type=int, default=1, help="use every n-th frame (default 1)")
     p.add_argument("--camera-names", nargs="+", help="camera names, in source order")
     p.add_argument("--reference", default="0", help="reference camera (index or name)")
@@ -34,7 +36,16 @@ def add_subcommand(sub) -> None:
     p.add_argument("--qc-png", help="QC figure (default: <output>.qc.png)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.set_defaults(func=run)
+    add_project_option(p, "calibrate")
+    p.set_defaults(func=_dispatch)
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    from ..pipeline import project_step_or
+
+    if not args.project and not (args.videos or args.images):
+        raise ValueError("acm-rs calibrate needs --videos or --images (or --project DIR)")
+    return project_step_or(args, "calibrate", run, ("--board", "--output"))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,4 +1,4 @@
-"""World frames and triangulation for calibrated rigs."""
+"""World frames for calibrated rigs (and :func:`triangulate`, re-exported from learning)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,10 @@ import numpy as np
 
 from .._arrays import as_float_array
 from ..camera import Camera, CameraRig
+from ..learning import triangulate  # DLT on undistorted rays, shared with learning
 from ..rotation import rodrigues_inverse
+
+__all__ = ["frame_from_points", "transform_rig", "triangulate"]
 
 
 def frame_from_points(points) -> tuple[np.ndarray, np.ndarray]:
@@ -77,46 +80,3 @@ def transform_rig(rig: CameraRig, rot: np.ndarray, origin: np.ndarray) -> Camera
             )  # fmt: skip
         )
     return CameraRig(cams)
-
-
-def triangulate(rig: CameraRig, pixels: np.ndarray) -> np.ndarray:
-    """Linear (DLT) triangulation on undistorted rays.
-
-    Parameters
-    ----------
-    rig : CameraRig
-    pixels : numpy.ndarray, shape (n_cams, ..., 2)
-        Pixels per camera; NaN where a point was not seen.
-
-    Returns
-    -------
-    numpy.ndarray, shape (..., 3)
-        World points; NaN where fewer than two cameras saw the point.
-    """
-    import cv2
-
-    px = np.asarray(pixels, float)
-    if px.shape[0] != len(rig) or px.shape[-1] != 2:
-        raise ValueError(f"pixels must have shape ({len(rig)}, ..., 2), got {px.shape}")
-    lead = px.shape[1:-1]
-    flat = px.reshape(len(rig), -1, 2)
-    n = flat.shape[1]
-    a = np.zeros((n, 2 * len(rig), 4))
-    for i, cam in enumerate(rig):
-        ok = np.isfinite(flat[i]).all(1)
-        if not ok.any():
-            continue
-        und = cv2.undistortPoints(flat[i, ok].reshape(-1, 1, 2), cam.matrix, cam.dist).reshape(
-            -1, 2
-        )
-        proj = np.hstack([cam.rotation_matrix, cam.tvec[:, None]])
-        a[ok, 2 * i] = und[:, :1] * proj[2] - proj[0]
-        a[ok, 2 * i + 1] = und[:, 1:] * proj[2] - proj[1]
-    count = np.isfinite(flat).all(-1).sum(0)
-    out = np.full((n, 3), np.nan)
-    good = count >= 2
-    if good.any():
-        _, _, vt = np.linalg.svd(a[good])
-        h = vt[:, -1]
-        out[good] = h[:, :3] / h[:, 3:]
-    return out.reshape(lead + (3,))

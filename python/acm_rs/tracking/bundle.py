@@ -17,7 +17,7 @@ from .._io import atomic_write
 from ..camera import CameraRig
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
-from .result import PoseResult
+from .result import PoseResult, em_history
 from .track import (
     DEFAULT_GATE,
     _first_pose,
@@ -105,10 +105,7 @@ def read_smoothed(
     inp = np.load(bundle)
     norm = Normalization(*inp["normalization"][:2], pixel=tuple(inp["normalization"][2:]))
     sm = StateMap(skeleton, norm, bool(inp["joint_limits_on"]))
-    history = [
-        {"iteration": i + 1, "delta": float(d), "seconds": float(s)}
-        for i, (d, s) in enumerate(zip(res["em_delta"], res["em_seconds"], strict=True))
-    ]
+    history = em_history(res["em_delta"], res["em_seconds"])
     return PoseResult(
         skeleton=skeleton, rig=rig, state_map=sm, joints=res["joints"],
         joints_std=res["joints_std"], markers=res["markers"], t=res["t"], r=res["r"],

@@ -102,18 +102,20 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 def add_subcommands(sub) -> None:
     """Add ``acm-rs track`` and ``acm-rs export`` to an argparse subparsers object."""
+    from ..pipeline import add_project_option, project_step_or
+
     p = sub.add_parser(
         "track",
         help="reconstruct 3D poses from DeepLabCut detections (EM + unscented RTS smoother)",
         description="ACM supplement sec. 4: learns the noise model by EM and writes the "
         "smoothed posterior (OUT.npz, OUT_joints.csv; exports on request).",
     )
-    p.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    p.add_argument("--calibration", help="anipose calibration.toml")
     p.add_argument("--camera-names", nargs="+", help="camera names in the order of --dlc")
     p.add_argument(
         "--skeleton", default="rat", help="learned skeleton TOML (acm-rs learn) or a model name"
     )
-    p.add_argument("--dlc", nargs="+", required=True, help="DeepLabCut .h5/.csv, one per camera")
+    p.add_argument("--dlc", nargs="+", help="DeepLabCut .h5/.csv, one per camera")
     p.add_argument("--individual", help="individual in multi-animal DeepLabCut files")
     p.add_argument("--frames", dest="frame_range", help="frame range START:END (row indices)")
     p.add_argument("--pcutoff", type=float, default=0.9, help="likelihood cutoff (0.9)")
@@ -127,16 +129,22 @@ def add_subcommands(sub) -> None:
     p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D exports")
     p.add_argument("--plots", help="folder for the tracking figures")
     p.add_argument("--bundle", action="store_true", help="only write OUT.bundle.npz for acm-smooth")
-    p.add_argument("-o", "--output", required=True, help="output prefix, e.g. out/session1")
-    p.set_defaults(func=_cmd_track)
+    p.add_argument("-o", "--output", help="output prefix, e.g. out/session1")
+    add_project_option(p, "track")
+    p.set_defaults(
+        func=lambda a: project_step_or(
+            a, "track", _cmd_track, ("--calibration", "--dlc", "--output")
+        )
+    )
 
     e = sub.add_parser("export", help="convert a tracking result (.npz) to other formats")
-    e.add_argument("input", help="result written by acm-rs track (OUT.npz)")
-    e.add_argument("--format", nargs="+", required=True, choices=["anipose", "nwb", "c3d", "npz"])
+    e.add_argument("input", nargs="?", help="result written by acm-rs track (OUT.npz)")
+    e.add_argument("--format", nargs="+", choices=["anipose", "nwb", "c3d", "npz"])
     e.add_argument("--points", choices=["joints", "markers"], default="joints")
     e.add_argument("--rate", type=float, help="frame rate (Hz), needed for C3D")
     e.add_argument("-o", "--output", help="output prefix (default: next to the input)")
-    e.set_defaults(func=_cmd_export)
+    add_project_option(e, "export")
+    e.set_defaults(func=lambda a: project_step_or(a, "export", _cmd_export, ("input", "--format")))
 
 
 __all__ = ["add_subcommands"]

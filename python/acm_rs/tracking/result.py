@@ -16,6 +16,14 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..state import StateMap
 
 
+def em_history(delta: np.ndarray, seconds: np.ndarray) -> list[dict]:
+    """``em_history`` records from stored per-iteration Δ and wall times."""
+    return [
+        {"iteration": i + 1, "delta": float(a), "seconds": float(b)}
+        for i, (a, b) in enumerate(zip(delta, seconds, strict=True))
+    ]
+
+
 @dataclass
 class PoseResult:
     """Poses of one recording reconstructed by :func:`acm_rs.track`.
@@ -198,10 +206,7 @@ class PoseResult:
             pixel=tuple(nd.get("pixel", (640.0, 512.0))),
         )
         sm = StateMap(skeleton, norm, bool(info.get("joint_limits", True)))
-        history = [
-            {"iteration": i + 1, "delta": float(a), "seconds": float(b)}
-            for i, (a, b) in enumerate(zip(d["em_delta"], d["em_seconds"], strict=True))
-        ]
+        history = em_history(d["em_delta"], d["em_seconds"])
         return cls(
             skeleton=skeleton, rig=rig, state_map=sm, joints=d["joints"],
             joints_std=d["joints_std"], markers=d["markers"], t=d["t"], r=d["r"],
