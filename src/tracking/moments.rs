@@ -96,13 +96,16 @@ pub fn posterior_poses(
                         Some(jb),
                         mb,
                     );
+                    // Shifted by the mean pose's values (no cancellation in E[x²] − E[x]²).
                     for (k, v) in jb.iter().enumerate() {
-                        jsum[k] += v;
-                        jsq[k] += v * v;
+                        let d = v - jo[k];
+                        jsum[k] += d;
+                        jsq[k] += d * d;
                     }
                     for (k, v) in mb.iter().enumerate() {
-                        msum[k] += v;
-                        msq[k] += v * v;
+                        let d = v - mo[k];
+                        msum[k] += d;
+                        msq[k] += d * d;
                     }
                 }
                 let w = 1.0 / (2 * n) as f64;

@@ -126,7 +126,8 @@ def detection_stats(
 def posterior_variance(result: PoseResult, points: str, chunk: int = 256) -> np.ndarray:
     """(T, P, 3) posterior variance of each coordinate (skeleton units squared).
 
-    Joints: ``result.joints_std ** 2``. Markers: unscented transform of the state posterior
+    Joints: ``result.joints_std ** 2``. Markers: ``result.info["markers_std"] ** 2`` when the
+    tracker stored it, otherwise the unscented transform of the state posterior
     through forward kinematics (the ``2 n`` symmetric sigma points ``mean +- sqrt(n) L e_i``,
     equal weights), as the tracker does for the joints. NaN everywhere when the result has no
     posterior covariance (``method="deterministic"``).
@@ -138,6 +139,9 @@ def posterior_variance(result: PoseResult, points: str, chunk: int = 256) -> np.
         return np.full((n_t, n_p, 3), np.nan)
     if points == "joints":
         return np.asarray(result.joints_std, float) ** 2
+    stored = result.info.get("markers_std")  # computed in Rust by the tracker
+    if isinstance(stored, np.ndarray) and stored.shape == (n_t, n_p, 3):
+        return stored**2
     mean = np.asarray(result.state_mean, float)
     cov = np.asarray(result.state_cov, float)
     n = mean.shape[1]
