@@ -181,12 +181,11 @@ pub fn emission_batch_into(
     if block == 0 {
         return Ok(());
     }
-    // One task per thread for small batches (a UKF step's 2n sigma points): fewer wake-ups.
-    let n_states = states.len() / ns;
-    let min_len = n_states.div_ceil(rayon::current_num_threads()).max(16);
+    // Tasks of >= 16 states: small enough for work stealing to balance a UKF step's 2n
+    // sigma points over the cores (one task per thread measured 30 % slower on this VM).
     out.par_chunks_mut(block)
         .zip(states.par_chunks(ns))
-        .with_min_len(min_len)
+        .with_min_len(16)
         .for_each_init(
             || {
                 (
