@@ -76,7 +76,7 @@ fn bench_smoother(c: &mut Criterion) {
     g.finish();
     let sm = smooth(&x, &model, &pats, true, 1e-6).unwrap();
     c.bench_function("em_update/k24", |b| {
-        b.iter(|| black_box(em_update(&x, &model, &pats, &sm, true).1))
+        b.iter(|| black_box(em_update(&x, &model, &pats, &sm, true).unwrap().1))
     });
 }
 

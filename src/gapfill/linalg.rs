@@ -100,12 +100,19 @@ dispatch!(chol_kernel(a: &mut [f64], n: usize) -> bool {
 });
 
 dispatch!(lower_inverse_kernel(ls: &[f64], ws: &mut [f64], n: usize) -> () {
+    let mut dinv = [0.0f64; 128];
+    let big = n > dinv.len();
+    if !big {
+        for j in 0..n {
+            dinv[j] = 1.0 / ls[j * n + j];
+        }
+    }
     for c in 0..n {
         let col = &mut ws[c * n..(c + 1) * n];
         col[c] = 1.0;
         for j in c..n {
             let lj = &ls[j * n..(j + 1) * n];
-            let v = col[j] / lj[j];
+            let v = if big { col[j] / lj[j] } else { col[j] * dinv[j] };
             col[j] = v;
             if v != 0.0 {
                 for (x, y) in col[j + 1..].iter_mut().zip(&lj[j + 1..]) {
@@ -209,6 +216,99 @@ pub fn chol_solve_in_place(l: &DMatrix<f64>, b: &mut [f64]) {
     }
 }
 
+/// Values of a packed lower triangle of an `n × n` matrix (`n (n + 1) / 2`).
+#[inline]
+pub fn packed_len(n: usize) -> usize {
+    n * (n + 1) / 2
+}
+
+/// Start of column `j` in a packed lower triangle (column `j` holds rows `j..n`).
+#[inline]
+pub fn packed_col(n: usize, j: usize) -> usize {
+    j * (2 * n + 1 - j) / 2
+}
+
+/// Appends the lower triangle of the column-major `n × n` matrix `full` to `dst`, packed.
+pub fn pack_lower(full: &[f64], n: usize, dst: &mut Vec<f64>) {
+    for j in 0..n {
+        dst.extend_from_slice(&full[j * n + j..(j + 1) * n]);
+    }
+}
+
+/// The symmetric `n × n` matrix (column-major) whose lower triangle is `packed`.
+pub fn unpack_symmetric(packed: &[f64], n: usize) -> DMatrix<f64> {
+    let mut m = DMatrix::zeros(n, n);
+    for j in 0..n {
+        let col = &packed[packed_col(n, j)..packed_col(n, j + 1)];
+        for (i, &v) in col.iter().enumerate() {
+            m[(j + i, j)] = v;
+            m[(j, j + i)] = v;
+        }
+    }
+    m
+}
+
+/// The lower-triangular `n × n` matrix (column-major) stored packed in `packed`.
+pub fn unpack_lower(packed: &[f64], n: usize) -> DMatrix<f64> {
+    let mut m = DMatrix::zeros(n, n);
+    for j in 0..n {
+        let col = &packed[packed_col(n, j)..packed_col(n, j + 1)];
+        for (i, &v) in col.iter().enumerate() {
+            m[(j + i, j)] = v;
+        }
+    }
+    m
+}
+
+/// Solves `L Lᵀ x = b` in place for a packed lower Cholesky factor `L` (`n × n`).
+pub fn chol_solve_packed(l: &[f64], n: usize, b: &mut [f64]) {
+    // L y = b (column-oriented forward substitution).
+    for c in 0..n {
+        let col = &l[packed_col(n, c)..packed_col(n, c + 1)];
+        let yc = b[c] / col[0];
+        b[c] = yc;
+        for (x, y) in b[c + 1..n].iter_mut().zip(&col[1..]) {
+            *x -= y * yc;
+        }
+    }
+    // Lᵀ x = y (row r of Lᵀ is column r of L).
+    for r in (0..n).rev() {
+        let col = &l[packed_col(n, r)..packed_col(n, r + 1)];
+        let s = dot(&col[1..], &b[r + 1..n]);
+        b[r] = (b[r] - s) / col[0];
+    }
+}
+
+/// `out += M v` for a symmetric `n × n` matrix `M` given by its packed lower triangle.
+pub fn sym_matvec_packed_add(m: &[f64], n: usize, v: &[f64], out: &mut [f64]) {
+    for j in 0..n {
+        let col = &m[packed_col(n, j)..packed_col(n, j + 1)];
+        // Row j of M (its lower part is column j): diagonal and below.
+        out[j] += dot(col, &v[j..n]);
+        let vj = v[j];
+        if vj != 0.0 {
+            for (o, c) in out[j + 1..n].iter_mut().zip(&col[1..]) {
+                *o += c * vj;
+            }
+        }
+    }
+}
+
+/// In-place lower Cholesky factorisation of the column-major `n × n` matrix `a` (only its lower
+/// triangle is read; the upper triangle is zeroed). `false` if `a` is not positive definite.
+pub fn cholesky_in_place(a: &mut [f64], n: usize) -> bool {
+    chol_kernel(a, n)
+}
+
+/// `out = A⁻¹` (column-major, symmetric) from the lower Cholesky factor `l` of `A`, using the
+/// scratch buffers `w`, `t` (each `n²`).
+pub fn inverse_from_cholesky(l: &[f64], n: usize, w: &mut [f64], t: &mut [f64], out: &mut [f64]) {
+    w.iter_mut().for_each(|x| *x = 0.0);
+    lower_inverse_kernel(l, w, n);
+    out.iter_mut().for_each(|x| *x = 0.0);
+    gram_lower_kernel(w, t, out, n);
+}
+
 /// Dot product with eight independent accumulators (vectorises without reassociation flags).
 #[inline]
 pub fn dot(a: &[f64], b: &[f64]) -> f64 {
@@ -233,6 +333,7 @@ pub fn dot(a: &[f64], b: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::DVector;
 
     #[test]
     fn spd_inverse_lower_matches_nalgebra() {
@@ -243,6 +344,28 @@ mod tests {
             let reference = spd.clone().try_inverse().unwrap();
             assert!(close(&inv, &reference, 1e-10), "n = {n}");
             assert_eq!(inv, inv.transpose());
+            // packed storage round trip and packed kernels
+            let mut packed = Vec::new();
+            pack_lower(inv.as_slice(), n, &mut packed);
+            assert_eq!(packed.len(), packed_len(n));
+            assert_eq!(unpack_symmetric(&packed, n), inv);
+            let v: Vec<f64> = (0..n).map(|i| (i as f64 * 0.37).sin()).collect();
+            let mut out = vec![1.0; n];
+            sym_matvec_packed_add(&packed, n, &v, &mut out);
+            let expect = &inv * DVector::from_column_slice(&v);
+            for i in 0..n {
+                assert!((out[i] - 1.0 - expect[i]).abs() < 1e-9 * (1.0 + expect[i].abs()));
+            }
+            let l = cholesky_lower(&spd).unwrap();
+            let mut lp = Vec::new();
+            pack_lower(l.as_slice(), n, &mut lp);
+            assert_eq!(unpack_lower(&lp, n), l);
+            let mut b = v.clone();
+            chol_solve_packed(&lp, n, &mut b);
+            let x = &inv * DVector::from_column_slice(&v);
+            for i in 0..n {
+                assert!((b[i] - x[i]).abs() < 1e-8 * (1.0 + x[i].abs()));
+            }
         }
         assert!(spd_inverse_lower(&DMatrix::from_element(2, 2, 1.0)).is_none());
     }
