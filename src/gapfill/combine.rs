@@ -2,6 +2,7 @@
 //! imputed frames), noise learning, smoothing, back-projection, border-residual correction and
 //! the automatic spline / smoother combination.
 
+use super::lowrank;
 use super::smoother::{self, Model, Patterns};
 use super::subspace::{self, Subspace};
 use super::{baselines, gaps_of, Combine, Filled, Info, Method, Options, Seq};
@@ -146,12 +147,24 @@ fn run(
         )?;
     }
     let pats = Patterns::new(seq.x, seq.d);
-    let sm = smoother::smooth(seq.x, &model, &pats, opts.want_std, opts.memo_tol)?;
     info.dim = k;
     info.r = model.r;
     info.q_trace = model.q.trace();
+    // Small-gain regime (e.g. the published r): low-rank filter states, same means.
+    let fast = if opts.want_std {
+        None
+    } else {
+        lowrank::smooth_means(seq.x, &model, &pats, opts.memo_tol)?
+    };
+    if let Some(lr) = fast {
+        info.distinct_covariances = lr.states;
+        info.low_rank = true;
+        return Ok((smoother::back_project_means(&lr.m, &model), None));
+    }
+    let sm = smoother::smooth(seq.x, &model, &pats, opts.want_std, opts.memo_tol)?;
+    info.low_rank = false;
     info.distinct_covariances = sm.distinct_filter_covariances();
-    let y = smoother::back_project(&sm, &model);
+    let y = smoother::back_project_means(&sm.m, &model);
     let std = opts
         .want_std
         .then(|| smoother::missing_std(seq.x, &sm, &model));

@@ -34,6 +34,7 @@ pub mod baselines;
 pub mod combine;
 pub mod io;
 pub mod linalg;
+pub mod lowrank;
 pub mod smoother;
 pub mod subspace;
 
@@ -237,6 +238,8 @@ pub struct Info {
     pub short_gap: usize,
     /// EM iterations run.
     pub em_iters: usize,
+    /// Whether the final smoothing pass used low-rank filter states ([`lowrank`]).
+    pub low_rank: bool,
 }
 
 /// The output of [`fill`].

@@ -109,31 +109,31 @@ impl Patterns {
         Self { of_frame, missing }
     }
 
-    fn all_missing(&self, p: u32, d: usize) -> bool {
+    pub(super) fn all_missing(&self, p: u32, d: usize) -> bool {
         self.missing[p as usize].len() == d
     }
 }
 
 /// The model in whitened coordinates `x' = L⁻¹ x̃`, `Q = L Lᵀ` (so `Q' = I`).
 #[derive(Debug, Clone)]
-struct White {
-    k: usize,
-    d: usize,
+pub(super) struct White {
+    pub(super) k: usize,
+    pub(super) d: usize,
     /// Lower Cholesky factor L of Q.
-    l: DMatrix<f64>,
+    pub(super) l: DMatrix<f64>,
     /// Rows `v_i' = Lᵀ v_i` (row-major D × d̂).
-    v: Vec<f64>,
+    pub(super) v: Vec<f64>,
     /// `Σ_i v_i' v_i'ᵀ` over all coordinates.
-    g_full: DMatrix<f64>,
+    pub(super) g_full: DMatrix<f64>,
     /// Prior information `(L⁻¹ P₀ L⁻ᵀ)⁻¹ = Lᵀ P₀⁻¹ L`, packed lower triangle.
-    lam0_packed: Vec<f64>,
+    pub(super) lam0_packed: Vec<f64>,
     /// Prior mean `L⁻¹ m₀`.
-    m0: DVector<f64>,
-    inv_r: f64,
+    pub(super) m0: DVector<f64>,
+    pub(super) inv_r: f64,
 }
 
 impl White {
-    fn new(model: &Model) -> Result<Self> {
+    pub(super) fn new(model: &Model) -> Result<Self> {
         let (d, k) = (model.d(), model.k());
         let mut q = model.q.clone();
         symmetrize(&mut q);
@@ -780,19 +780,25 @@ fn smoothed_covariances(sm: &mut Smoothed, tol: f64) -> Result<()> {
 
 /// Back-projection `y_t = V̂ m̃_t + m̄` of all frames (Algorithm 1, last loop), row-major T × D.
 pub fn back_project(sm: &Smoothed, model: &Model) -> Vec<f64> {
+    back_project_means(&sm.m, model)
+}
+
+/// Back-projection `y_t = V̂ m̃_t + m̄` of the row-major `T × d̂` means `m` (one matrix
+/// product), row-major `T × D`.
+pub fn back_project_means(m: &[f64], model: &Model) -> Vec<f64> {
     let d = model.d();
     let k = model.k();
-    let t_len = sm.m.len() / k;
-    let mut y = vec![0.0; t_len * d];
-    y.par_chunks_mut(d)
-        .zip(sm.m.par_chunks(k))
-        .for_each(|(row, m)| {
-            for (i, o) in row.iter_mut().enumerate() {
-                let v = model.row(i);
-                *o = model.mean[i] + dot(v, m);
-            }
-        });
-    y
+    let t_len = m.len() / k;
+    // Column-major D × T = row-major T × D.
+    let mt = DMatrix::from_column_slice(k, t_len, m);
+    let v = DMatrix::from_row_slice(d, k, &model.v);
+    let mut y = v * mt;
+    y.as_mut_slice().par_chunks_mut(d).for_each(|row| {
+        for (o, mb) in row.iter_mut().zip(&model.mean) {
+            *o += mb;
+        }
+    });
+    y.as_slice().to_vec()
 }
 
 /// Predictive standard deviation `sqrt(v_iᵀ P̃_t v_i + r)` of every missing value (0 elsewhere),

@@ -99,6 +99,7 @@ fn gapfill_fill<'py>(
     info.set_item("distinct_covariances", res.info.distinct_covariances)?;
     info.set_item("short_gap", res.info.short_gap)?;
     info.set_item("em_iters", res.info.em_iters)?;
+    info.set_item("low_rank", res.info.low_rank)?;
     let filled = out(py, res.x, &[t, d])?;
     let std = match res.std {
         Some(s) => Some(out(py, s, &[t, d])?),
