@@ -29,7 +29,7 @@
 //! is below 10⁻³, the rank of `E_t` stays near the number of missing coordinates, and a state
 //! costs `O(d̂ q + q³)` instead of `≈ 1.3 d̂³`.
 
-use super::linalg::{chol_solve_in_place, cholesky_lower, spd_inverse_lower};
+use super::linalg::{chol_solve_in_place, cholesky_lower, dot, spd_inverse_lower};
 use super::smoother::{Model, Patterns, White};
 use crate::error::{AcmError, Result};
 use nalgebra::{DMatrix, SymmetricEigen};
@@ -62,7 +62,7 @@ struct LState {
     k: Vec<f64>,
     /// `‖E_t‖_F`.
     e_norm: f64,
-    /// Upper bound of `‖P_t‖₂`.
+    /// Upper bound of `‖P_t‖₂` (canonical states; infinite otherwise).
     pnorm: f64,
 }
 
@@ -144,37 +144,46 @@ impl Setup<'_> {
         let mut a_mu = DMatrix::<f64>::zeros(qp, qp);
         let mut gram = DMatrix::<f64>::zeros(qp, qp);
         let mut gram_lam = DMatrix::<f64>::zeros(qp, qp);
-        for a in 0..qp {
+        // Inherited columns scaled by the four weights (so every entry is one dot product).
+        let weights = [&self.inv_lam, &self.mu, &self.mu2, &self.inv_lam2];
+        let mut scaled = vec![0.0; 4 * n * q_old];
+        for a in 0..q_old {
             let wa = self.w_col(z_old, q_old, miss, a);
+            for (f, wt) in weights.iter().enumerate() {
+                let dst = &mut scaled[(4 * a + f) * n..(4 * a + f + 1) * n];
+                for ((o, w), x) in dst.iter_mut().zip(wa).zip(wt.iter()) {
+                    *o = w * x;
+                }
+            }
+        }
+        for a in 0..qp {
             for b in 0..=a {
-                let (vl, vm, vg, vgl) = if a >= q_old && b >= q_old {
+                let v = if b >= q_old {
                     let ij = miss[a - q_old] as usize * self.d + miss[b - q_old] as usize;
-                    (
+                    [
                         self.h_lam[ij],
                         self.h_mu[ij],
                         self.h_mu2[ij],
                         self.h_lam2[ij],
-                    )
+                    ]
                 } else {
-                    let wb = self.w_col(z_old, q_old, miss, b);
-                    let (mut sl, mut sm, mut sg, mut sgl) = (0.0, 0.0, 0.0, 0.0);
-                    for j in 0..n {
-                        let p = wa[j] * wb[j];
-                        sl += p * self.inv_lam[j];
-                        sm += p * self.mu[j];
-                        sg += p * self.mu2[j];
-                        sgl += p * self.inv_lam2[j];
-                    }
-                    (sl, sm, sg, sgl)
+                    let wa = self.w_col(z_old, q_old, miss, a);
+                    let sb = |f: usize| &scaled[(4 * b + f) * n..(4 * b + f + 1) * n];
+                    [
+                        dot(sb(0), wa),
+                        dot(sb(1), wa),
+                        dot(sb(2), wa),
+                        dot(sb(3), wa),
+                    ]
                 };
-                gram_lam[(a, b)] = vgl;
-                gram_lam[(b, a)] = vgl;
-                a_lam[(a, b)] = vl;
-                a_lam[(b, a)] = vl;
-                a_mu[(a, b)] = vm;
-                a_mu[(b, a)] = vm;
-                gram[(a, b)] = vg;
-                gram[(b, a)] = vg;
+                a_lam[(a, b)] = v[0];
+                a_lam[(b, a)] = v[0];
+                a_mu[(a, b)] = v[1];
+                a_mu[(b, a)] = v[1];
+                gram[(a, b)] = v[2];
+                gram[(b, a)] = v[2];
+                gram_lam[(a, b)] = v[3];
+                gram_lam[(b, a)] = v[3];
             }
         }
         let singular =
@@ -189,10 +198,9 @@ impl Setup<'_> {
                 }
                 return Ok(-spd_inverse_lower(&s).ok_or_else(singular)?);
             }
-            // T = C (I + A C)⁻¹ = ((I + A C)⁻ᵀ C)ᵀ (C symmetric).
-            let s = DMatrix::identity(qp, qp) + a * &c;
-            let t = s.transpose().lu().solve(&c).ok_or_else(singular)?;
-            let mut t = t.transpose();
+            // T = C (I + A C)⁻¹ = (I + C A)⁻¹ C (both symmetric forms are equal).
+            let t = solve_capacitance(a.as_slice(), k_old, q_old, qp).ok_or_else(singular)?;
+            let mut t = DMatrix::from_column_slice(qp, qp, &t);
             for i in 0..qp {
                 for j in 0..i {
                     let v = 0.5 * (t[(i, j)] + t[(j, i)]);
@@ -272,9 +280,12 @@ impl Setup<'_> {
                 .sum::<f64>()
                 .sqrt();
         }
-        // ‖P‖₂ ≤ max 1/λ + ‖(W/λ) T₁ (W/λ)ᵀ‖_F.
-        let il_max = self.inv_lam.iter().copied().fold(0.0, f64::max);
-        let pnorm = il_max + e_fro(&t1, &gram_lam);
+        // ‖P‖₂ ≤ max 1/λ + ‖(W/λ) T₁ (W/λ)ᵀ‖_F (used by the merge test of canonical states).
+        let pnorm = if q_old == 0 {
+            self.inv_lam.iter().copied().fold(0.0, f64::max) + e_fro(&t1, &gram_lam)
+        } else {
+            f64::INFINITY
+        };
         Ok(Some(LState {
             old: if q_old > 0 { old } else { None },
             q_old,
@@ -333,6 +344,89 @@ impl Setup<'_> {
             }
         }
     }
+}
+
+/// `T = (I + C A)⁻¹ C` for `C = blockdiag(K_old, −I)` (`q_old` + rest), `A` symmetric
+/// `qp × qp` (column-major): Gaussian elimination with partial pivoting on row-major copies
+/// (contiguous row operations). Returns `T` column-major, or `None` if singular.
+fn solve_capacitance(a: &[f64], k_old: &[f64], q_old: usize, qp: usize) -> Option<Vec<f64>> {
+    // S = I + C A and R = C, row-major (A symmetric: row j of A = column j).
+    let mut s = vec![0.0; qp * qp];
+    let mut r = vec![0.0; qp * qp];
+    for i in 0..qp {
+        let row = &mut s[i * qp..(i + 1) * qp];
+        if i < q_old {
+            for l in 0..q_old {
+                let c = k_old[l * q_old + i];
+                if c != 0.0 {
+                    for (o, x) in row.iter_mut().zip(&a[l * qp..(l + 1) * qp]) {
+                        *o += c * x;
+                    }
+                }
+            }
+            r[i * qp..i * qp + q_old].copy_from_slice(&k_old[i * q_old..(i + 1) * q_old]);
+        } else {
+            for (o, x) in row.iter_mut().zip(&a[i * qp..(i + 1) * qp]) {
+                *o = -x;
+            }
+            r[i * qp + i] = -1.0;
+        }
+        row[i] += 1.0;
+    }
+    for c in 0..qp {
+        let p = (c..qp).max_by(|&x, &y| s[x * qp + c].abs().total_cmp(&s[y * qp + c].abs()))?;
+        let piv = s[p * qp + c];
+        if !(piv.abs() > 0.0 && piv.is_finite()) {
+            return None;
+        }
+        if p != c {
+            for j in 0..qp {
+                s.swap(p * qp + j, c * qp + j);
+                r.swap(p * qp + j, c * qp + j);
+            }
+        }
+        let (top, bottom) = s.split_at_mut((c + 1) * qp);
+        let (rtop, rbottom) = r.split_at_mut((c + 1) * qp);
+        let prow = &top[c * qp..];
+        let rrow = &rtop[c * qp..];
+        for (srow, rr) in bottom
+            .chunks_exact_mut(qp)
+            .zip(rbottom.chunks_exact_mut(qp))
+        {
+            let f = srow[c] / piv;
+            if f != 0.0 {
+                for (o, x) in srow[c..].iter_mut().zip(&prow[c..]) {
+                    *o -= f * x;
+                }
+                for (o, x) in rr.iter_mut().zip(rrow) {
+                    *o -= f * x;
+                }
+            }
+        }
+    }
+    // Back substitution, row by row from the bottom.
+    for c in (0..qp).rev() {
+        let (top, bottom) = r.split_at_mut(c * qp + qp);
+        let row = &mut top[c * qp..];
+        for j in c + 1..qp {
+            let f = s[c * qp + j];
+            if f != 0.0 {
+                for (o, x) in row.iter_mut().zip(&bottom[(j - c - 1) * qp..(j - c) * qp]) {
+                    *o -= f * x;
+                }
+            }
+        }
+        let inv = 1.0 / s[c * qp + c];
+        row.iter_mut().for_each(|x| *x *= inv);
+    }
+    // Row-major T → column-major.
+    let mut t = vec![0.0; qp * qp];
+    for i in 0..qp {
+        for j in 0..qp {
+            t[j * qp + i] = r[i * qp + j];
+        }
+    }
+    t.iter().all(|v| v.is_finite()).then_some(t)
 }
 
 /// `‖Z K Zᵀ‖_F = √tr(K G K G)` from the Gram matrix `G = ZᵀZ`.
@@ -467,9 +561,17 @@ pub fn smooth_means(
     let lam0 = super::linalg::unpack_symmetric(&w.lam0_packed, n);
     let mut dense: Vec<Dense> = vec![dense_step(&(u.transpose() * lam0 * &u), pats.of_frame[0])?];
 
+    // Canonical states of every pattern (independent of the history: in parallel).
+    let canonical: Vec<Option<LState>> = (0..pats.missing.len() as u32)
+        .into_par_iter()
+        .map(|p| setup.state(&[], None, p))
+        .collect::<Result<_>>()?;
+    if canonical.iter().any(Option::is_none) {
+        return Ok(None);
+    }
+    let mut states: Vec<LState> = canonical.into_iter().flatten().collect();
+    let canon: Vec<u32> = (0..states.len() as u32).collect();
     // Forward pass: states and filter means.
-    let mut states: Vec<LState> = Vec::new();
-    let mut canon: Vec<Option<u32>> = vec![None; pats.missing.len()];
     let mut trans: HashMap<(u32, u32), u32> = HashMap::new();
     let mut sof = vec![0u32; t_len]; // low-rank state of frame t ≥ dense.len()
     let mut mf = vec![0.0; t_len * n];
@@ -506,18 +608,7 @@ pub fn smooth_means(
             let sid = match (prev, trans.get(&key)) {
                 (Some(_), Some(&s)) => Some(s),
                 _ => {
-                    let c_id = match canon[pat as usize] {
-                        Some(c) => c,
-                        None => match setup.state(&states, None, pat)? {
-                            Some(st) => {
-                                states.push(st);
-                                let id = states.len() as u32 - 1;
-                                canon[pat as usize] = Some(id);
-                                id
-                            }
-                            None => return Ok(None),
-                        },
-                    };
+                    let c_id = canon[pat as usize];
                     let e_prev = match prev {
                         Some(p) => states[p as usize].e_norm,
                         None => dense[t - 1].e_norm,
