@@ -102,6 +102,38 @@ def test_paper_method_equals_numpy_reference(seq):
     assert e_ours.max() <= e_ref.max() + 1e-6
 
 
+def test_low_rank_states_equal_the_dense_smoother(seq):
+    # The published r puts the filter in the small-gain regime: the final pass uses low-rank
+    # states (memo_tol > 0, no std requested) and must agree with the exact dense recursion.
+    from acm_rs import _native
+
+    G = gapped(seq, seed=5)
+    fast = fill(G, method="lowdim-paper")
+    exact = fill(G, method="lowdim-paper", memo_tol=0.0)
+    scale = np.abs(seq).max()
+    np.testing.assert_allclose(fast, exact, rtol=0, atol=1e-6 * scale)
+
+    def info(method, r, memo_tol):
+        args = (G.reshape(len(G), -1), method, 0.9975, "singular-values", None, r, 0, True, 0)
+        rest = (36, "none", None, True, False, memo_tol, 0)
+        return _native.gapfill_fill(*args, *rest)[2]
+
+    assert info("lowdim-paper", 1e-3, 1e-6)["low_rank"]
+    assert not info("lowdim-paper", 1e-3, 0.0)["low_rank"]
+    # With large gains (r far above the frame-to-frame motion) the dense smoother runs.
+    assert not info("lowdim", 1e3, 1e-6)["low_rank"]
+
+
+def test_paper_q_is_used_when_the_subspace_is_iterated(seq):
+    G = gapped(seq)
+    G[::2, 0] = np.nan
+    G[1::2, 1] = np.nan  # no complete frame: impute, SVD, smooth
+    a = fill(G, em_iters=0, full_output=True).info
+    b = fill(G, em_iters=0, paper_q=True, full_output=True).info
+    assert a["iterated_subspace"] and b["iterated_subspace"]
+    assert not np.isclose(a["q_trace"], b["q_trace"], rtol=1e-3)
+
+
 def test_printed_gain_is_worse_than_rts_gain(seq):
     G = gapped(seq, seed=4)
     T = G.shape[0]

@@ -62,7 +62,11 @@ pub fn fill_lowdim(seq: &Seq<'_>, opts: &Options) -> Result<Filled> {
         let mut last = None;
         for round in 0..rounds {
             let sub = subspace::fit(&cur, d, &all_rows, opts.criterion, opts.gamma, opts.dim)?;
-            let q = subspace::q_from_pairs(&cur, d, &all_pairs, &sub);
+            let q = if opts.paper_q {
+                subspace::q_paper(&cur, d, &all_rows, &sub)
+            } else {
+                subspace::q_from_pairs(&cur, d, &all_pairs, &sub)
+            };
             let mut o = opts.clone();
             o.want_std = opts.want_std && round + 1 == rounds;
             let (yy, ss) = run(seq, &sub, q, &o, false, &mut info)?;
