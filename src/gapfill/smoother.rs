@@ -540,6 +540,12 @@ impl Chain {
         tol: f64,
     ) -> Result<()> {
         let mut prev = self.sof.last().copied().unwrap_or(PRIOR);
+        // At most one new state per frame: reserve once (address space only; pages are
+        // touched when written) instead of growing by doubling (copies and refaults).
+        let need = frames.len() * 2 * self.mats.tri;
+        let arena = &mut self.mats.arenas[0];
+        arena.reserve(need.saturating_sub(arena.capacity() - arena.len()));
+        self.sof.reserve(frames.len());
         for t in frames {
             prev = self.step(w, pats, prev, t, tol)?;
             self.sof.push(prev);
