@@ -60,13 +60,13 @@ struct LState {
     q: usize,
     /// `K` (`q × q`, column-major).
     k: Vec<f64>,
-    /// `‖E_t‖_F`.
+    /// Upper bound of `‖E_t‖₂` (see [`e_spec`]).
     e_norm: f64,
     /// Upper bound of `‖P_t‖₂` (canonical states; infinite otherwise).
     pnorm: f64,
 }
 
-/// A dense state of the first frames: Cholesky factor of `Λ_t`, `M_t` and `‖E_t‖_F`.
+/// A dense state of the first frames: Cholesky factor of `Λ_t`, `M_t` and a bound of `‖E_t‖₂`.
 struct Dense {
     chol: DMatrix<f64>,
     m: DMatrix<f64>,
@@ -212,7 +212,7 @@ impl Setup<'_> {
         };
         let t1 = capacitance(&a_lam)?;
         let kf = capacitance(&a_mu)?;
-        let e_full = e_fro(&kf, &gram);
+        let e_full = e_spec(&kf, &gram);
         let mu_max = self.mu.iter().copied().fold(0.0, f64::max);
         // Drop the inherited block when its contribution to E is below the tolerance:
         // ‖E_full − Z_n K_nn Z_nᵀ‖_F = ‖Z K' Zᵀ‖_F, K' = K outside the nn block.
@@ -225,7 +225,7 @@ impl Setup<'_> {
                 }
             }
             let slack = (1.0 - mu_max - e_full).max(0.0);
-            if e_fro(&kd, &gram) <= self.tol * slack {
+            if e_spec(&kd, &gram) <= self.tol * slack {
                 keep_from = q_old;
             }
         }
@@ -234,7 +234,7 @@ impl Setup<'_> {
         let e_norm = if keep_from == 0 {
             e_full
         } else {
-            e_fro(&k, &gram.view((keep_from, keep_from), (q, q)).into_owned())
+            e_spec(&k, &gram.view((keep_from, keep_from), (q, q)).into_owned())
         };
         // Z = diag(μ) W (kept columns).
         let mut z = vec![0.0; n * q];
@@ -276,13 +276,12 @@ impl Setup<'_> {
             }
             e_norm = keep
                 .iter()
-                .map(|&i| eig.eigenvalues[i] * eig.eigenvalues[i])
-                .sum::<f64>()
-                .sqrt();
+                .map(|&i| eig.eigenvalues[i].abs())
+                .fold(0.0, f64::max);
         }
-        // ‖P‖₂ ≤ max 1/λ + ‖(W/λ) T₁ (W/λ)ᵀ‖_F (used by the merge test of canonical states).
+        // ‖P‖₂ ≤ max 1/λ + ‖(W/λ) T₁ (W/λ)ᵀ‖₂ (used by the merge test of canonical states).
         let pnorm = if q_old == 0 {
-            self.inv_lam.iter().copied().fold(0.0, f64::max) + e_fro(&t1, &gram_lam)
+            self.inv_lam.iter().copied().fold(0.0, f64::max) + e_spec(&t1, &gram_lam)
         } else {
             f64::INFINITY
         };
@@ -429,17 +428,22 @@ fn solve_capacitance(a: &[f64], k_old: &[f64], q_old: usize, qp: usize) -> Optio
     t.iter().all(|v| v.is_finite()).then_some(t)
 }
 
-/// `‖Z K Zᵀ‖_F = √tr(K G K G)` from the Gram matrix `G = ZᵀZ`.
-fn e_fro(k: &DMatrix<f64>, g: &DMatrix<f64>) -> f64 {
+/// Upper bound of the spectral norm of `E = Z K Zᵀ` (`K` symmetric) from the Gram matrix
+/// `G = ZᵀZ`: `‖E‖₂ ≤ (tr E⁴)^{1/4} = (tr (K G)⁴)^{1/4}` (the Schatten-4 norm; tighter than the
+/// Frobenius norm by up to `rank^{1/4}`).
+fn e_spec(k: &DMatrix<f64>, g: &DMatrix<f64>) -> f64 {
     if k.is_empty() {
         return 0.0;
     }
     let kg = k * g;
-    kg.iter()
-        .zip(kg.transpose().iter())
+    let kg2 = &kg * &kg;
+    // tr(A²) for A = (KG)², which is similar to a symmetric matrix: Σ_ij A_ij A_ji.
+    kg2.iter()
+        .zip(kg2.transpose().iter())
         .map(|(a, b)| a * b)
         .sum::<f64>()
         .max(0.0)
+        .sqrt()
         .sqrt()
 }
 
@@ -552,9 +556,11 @@ pub fn smooth_means(
         for c in 0..n {
             e[(c, c)] += setup.mu[c];
         }
+        // ‖E‖₂ ≤ (tr E⁴)^{1/4} = ‖E²‖_F^{1/2}.
+        let e2 = &e * &e;
         Ok(Dense {
             chol,
-            e_norm: e.norm(),
+            e_norm: e2.norm().sqrt(),
             m,
         })
     };
@@ -581,10 +587,11 @@ pub fn smooth_means(
     let mut prev: Option<u32> = None; // None while in the dense prefix
     for t in 0..t_len {
         let pat = pats.of_frame[t];
-        let m_hat: Vec<f64> = if t == 0 {
-            m0y.iter().copied().collect()
+        let (done, rest) = mf.split_at_mut(t * n);
+        let m_hat: &[f64] = if t == 0 {
+            m0y.as_slice()
         } else {
-            mf[(t - 1) * n..t * n].to_vec()
+            &done[(t - 1) * n..]
         };
         // h = (b_t − G_t m̂) / r, G_t m̂ = g ∘ m̂ − Σ_missing v_y,i (v_y,iᵀ m̂).
         for c in 0..n {
@@ -593,7 +600,7 @@ pub fn smooth_means(
         for &i in &pats.missing[pat as usize] {
             // v_y,i (v_y,iᵀ m̂) = r · us_i (us_iᵀ m̂), us_i = v_y,i / √r.
             let r = setup.us_row(i as usize);
-            let p: f64 = r.iter().zip(&m_hat).map(|(a, m)| a * m).sum::<f64>() / w.inv_r;
+            let p: f64 = r.iter().zip(m_hat).map(|(a, m)| a * m).sum::<f64>() / w.inv_r;
             for (hc, rc) in h.iter_mut().zip(r) {
                 *hc += p * rc;
             }
@@ -651,7 +658,7 @@ pub fn smooth_means(
                 }
             }
         }
-        for (o, (a, hc)) in mf[t * n..(t + 1) * n].iter_mut().zip(m_hat.iter().zip(&h)) {
+        for (o, (a, hc)) in rest[..n].iter_mut().zip(m_hat.iter().zip(&h)) {
             *o = a + hc;
         }
     }
@@ -678,7 +685,7 @@ pub fn smooth_means(
     let my = DMatrix::from_column_slice(n, t_len, &ms);
     let m = lu * my; // n × T, column-major = row-major T × n
     Ok(Some(LowRankMeans {
-        m: m.as_slice().to_vec(),
+        m: m.data.into(),
         states: states.len() + dense.len(),
     }))
 }

@@ -804,7 +804,7 @@ pub fn back_project_means(m: &[f64], model: &Model) -> Vec<f64> {
             *o += mb;
         }
     });
-    y.as_slice().to_vec()
+    y.data.into()
 }
 
 /// Predictive standard deviation `sqrt(v_iᵀ P̃_t v_i + r)` of every missing value (0 elsewhere),
