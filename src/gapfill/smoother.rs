@@ -578,7 +578,17 @@ fn filter_states(w: &White, pats: &Patterns, tol: f64) -> Result<(Vec<FState>, A
     } else {
         1
     };
-    let bound = |c: usize| c * t_len / n;
+    // Equal work per thread: chunks after the first also compute BURN_IN earlier frames.
+    let work = (t_len + (n - 1) * BURN_IN) / n;
+    let bound = |c: usize| {
+        if c == 0 {
+            0
+        } else if c == n {
+            t_len
+        } else {
+            c * work - (c - 1) * BURN_IN
+        }
+    };
     let mut locals = (0..n)
         .into_par_iter()
         .map(|c| {
@@ -858,7 +868,15 @@ fn cov_sums(sm: &Smoothed, pats: &Patterns) -> Result<CovSums> {
     } else {
         1
     };
-    let bound = |c: usize| c * t_len / n;
+    // Equal work per thread: chunks before the last also run BWD_BURN_IN later frames.
+    let work = (t_len + (n - 1) * BWD_BURN_IN) / n;
+    let bound = |c: usize| {
+        if c == n {
+            t_len
+        } else {
+            c * (work - BWD_BURN_IN)
+        }
+    };
     let last_frame = |c: usize| {
         if c + 1 == n {
             t_len - 1
