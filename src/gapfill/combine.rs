@@ -163,7 +163,9 @@ fn run(
     if let Some(lr) = fast {
         info.distinct_covariances = lr.states;
         info.low_rank = true;
-        return Ok((smoother::back_project_means(&lr.m, &model), None));
+        // Observed values are kept and no border residual is needed: project only the gaps.
+        let only_missing = opts.keep_original && opts.combine == Combine::None;
+        return Ok((lr.back_project(&model, seq.x, only_missing), None));
     }
     let sm = smoother::smooth(seq.x, &model, &pats, opts.want_std, opts.memo_tol)?;
     info.low_rank = false;

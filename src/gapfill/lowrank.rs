@@ -42,10 +42,53 @@ const MU_MAX: f64 = 0.05;
 /// Output of [`smooth_means`].
 #[derive(Debug, Clone)]
 pub struct LowRankMeans {
-    /// Smoothed subspace means `m̃_t`, row-major T × d̂ (original coordinates).
-    pub m: Vec<f64>,
+    /// Smoothed means in the rotated whitened coordinates, row-major T × d̂
+    /// (`m̃_t = L U y_t`).
+    pub y: Vec<f64>,
+    /// `L U`: rotated whitened → original subspace coordinates (d̂ × d̂).
+    pub to_orig: DMatrix<f64>,
     /// Filter states computed.
     pub states: usize,
+}
+
+impl LowRankMeans {
+    /// Smoothed subspace means `m̃_t`, row-major T × d̂ (original coordinates).
+    pub fn means(&self) -> Vec<f64> {
+        let n = self.to_orig.nrows();
+        let my = DMatrix::from_column_slice(n, self.y.len() / n.max(1), &self.y);
+        (&self.to_orig * my).data.into()
+    }
+
+    /// Back-projection `x̂_t = V̂ L U y_t + m̄` (Algorithm 1, last loop), row-major `T × D`:
+    /// every value, or (`only_missing`) only where `x` is NaN, the observed values copied.
+    pub fn back_project(&self, model: &Model, x: &[f64], only_missing: bool) -> Vec<f64> {
+        let (d, n) = (model.d(), model.k());
+        let t_len = self.y.len() / n;
+        // Rows b_i = (V̂ L U)ᵀ v... : B = V̂ (L U), D × n.
+        let b = DMatrix::from_row_slice(d, n, &model.v) * &self.to_orig;
+        if !only_missing {
+            let my = DMatrix::from_column_slice(n, t_len, &self.y);
+            let mut out = b * my; // D × T column-major = row-major T × D
+            out.as_mut_slice().par_chunks_mut(d).for_each(|row| {
+                for (o, m) in row.iter_mut().zip(&model.mean) {
+                    *o += m;
+                }
+            });
+            return out.data.into();
+        }
+        let bt = b.transpose(); // column i = row b_i
+        let mut out = x.to_vec();
+        out.par_chunks_mut(d)
+            .zip(self.y.par_chunks(n))
+            .for_each(|(row, yt)| {
+                for (i, o) in row.iter_mut().enumerate() {
+                    if o.is_nan() {
+                        *o = model.mean[i] + dot(&bt.as_slice()[i * n..(i + 1) * n], yt);
+                    }
+                }
+            });
+        out
+    }
 }
 
 /// A filter state: `E_t = Z K Zᵀ` (`Z` column-major `n × q`) and the mean solve data.
@@ -524,8 +567,21 @@ pub fn smooth_means(
             *o = if z.is_nan() { 0.0 } else { z - model.mean[i] };
         }
     });
-    let zc = DMatrix::from_column_slice(d, t_len, &zc); // D × T (columns = frames)
-    let b = vy.transpose() * zc; // n × T
+    // b = V_yᵀ Z_c (n × T), in column blocks on the threads.
+    let vyt = vy.transpose();
+    let blocks = rayon::current_num_threads().max(1);
+    let per = t_len.div_ceil(blocks);
+    let parts: Vec<DMatrix<f64>> = zc
+        .par_chunks(per * d)
+        .map(|c| &vyt * DMatrix::from_column_slice(d, c.len() / d, c))
+        .collect();
+    let mut b = DMatrix::<f64>::zeros(n, t_len);
+    let mut col = 0;
+    for p in parts {
+        let w_ = p.ncols();
+        b.columns_mut(col, w_).copy_from(&p);
+        col += w_;
+    }
     let gdiag: Vec<f64> = g.iter().map(|&v| v.max(0.0)).collect();
 
     // Dense prefix (A.2, A.4 in the eigenbasis): from the prior until the dense state is
@@ -681,11 +737,9 @@ pub fn smooth_means(
         }
     }
     // Back to the original coordinates: m̃ = L U m̃_y.
-    let lu = &w.l * &u;
-    let my = DMatrix::from_column_slice(n, t_len, &ms);
-    let m = lu * my; // n × T, column-major = row-major T × n
     Ok(Some(LowRankMeans {
-        m: m.data.into(),
+        y: ms,
+        to_orig: &w.l * &u,
         states: states.len() + dense.len(),
     }))
 }
@@ -745,7 +799,7 @@ mod tests {
             let err = dense
                 .m
                 .iter()
-                .zip(&lr.m)
+                .zip(&lr.means())
                 .map(|(a, b)| (a - b).abs())
                 .fold(0.0, f64::max);
             assert!(
@@ -753,6 +807,16 @@ mod tests {
                 "r = {r}: max difference {err} (scale {scale})"
             );
             assert!(lr.states < 300, "states {}", lr.states);
+            // Sparse back-projection: the gaps as in the full one, observed values copied.
+            let full = lr.back_project(&model, &x, false);
+            let sparse = lr.back_project(&model, &x, true);
+            for ((f, sp), v) in full.iter().zip(&sparse).zip(&x) {
+                if v.is_nan() {
+                    assert!((f - sp).abs() <= 1e-9 * scale.max(1.0));
+                } else {
+                    assert_eq!(sp, v);
+                }
+            }
         }
     }
 
