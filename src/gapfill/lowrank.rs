@@ -119,6 +119,25 @@ struct Dense {
 /// Frames the dense prefix may take before the attempt gives up.
 const DENSE_PREFIX: usize = 64;
 
+/// Canonical states (ids `0..canon.len()`) and the states of one forward run (the ids after).
+#[derive(Clone, Copy)]
+struct Pool<'a> {
+    canon: &'a [LState],
+    local: &'a [LState],
+}
+
+impl Pool<'_> {
+    #[inline]
+    fn get(&self, id: u32) -> &LState {
+        let id = id as usize;
+        if id < self.canon.len() {
+            &self.canon[id]
+        } else {
+            &self.local[id - self.canon.len()]
+        }
+    }
+}
+
 struct Setup<'a> {
     n: usize,
     pats: &'a Patterns,
@@ -157,12 +176,12 @@ impl Setup<'_> {
 
     /// The state for pattern `pat` reached from `old` (its `E = Z K Zᵀ`; `None` = `E = 0`).
     /// `Ok(None)` if the rank exceeds the cap.
-    fn state(&self, states: &[LState], old: Option<u32>, pat: u32) -> Result<Option<LState>> {
+    fn state(&self, states: Pool<'_>, old: Option<u32>, pat: u32) -> Result<Option<LState>> {
         let n = self.n;
         let miss = &self.pats.missing[pat as usize];
         let (z_old, k_old, q_old): (&[f64], &[f64], usize) = match old {
             Some(s) => {
-                let st = &states[s as usize];
+                let st = states.get(s);
                 (&st.z, &st.k, st.q)
             }
             None => (&[], &[], 0),
@@ -342,9 +361,9 @@ impl Setup<'_> {
     }
 
     /// `h ← Λ⁻¹ h` for a low-rank state.
-    fn solve(&self, states: &[LState], st: &LState, h: &mut [f64], tmp: &mut Vec<f64>) {
+    fn solve(&self, states: Pool<'_>, st: &LState, h: &mut [f64], tmp: &mut Vec<f64>) {
         let miss = &self.pats.missing[st.pat as usize];
-        let z_old: &[f64] = st.old.map_or(&[], |s| &states[s as usize].z);
+        let z_old: &[f64] = st.old.map_or(&[], |s| &states.get(s).z);
         let qp = st.q_old + miss.len();
         for (x, il) in h.iter_mut().zip(&self.inv_lam) {
             *x *= il;
@@ -490,6 +509,236 @@ fn e_spec(k: &DMatrix<f64>, g: &DMatrix<f64>) -> f64 {
         .sqrt()
 }
 
+/// Frames below which the forward pass runs on one thread.
+const MIN_FORWARD: usize = 1000;
+/// Frames the second forward run starts before its first frame (from the prior).
+const FORWARD_BURN_IN: usize = 64;
+
+/// What every forward run shares.
+struct Ctx<'a> {
+    setup: &'a Setup<'a>,
+    canon: Vec<LState>,
+    /// Data terms `b_t` (n × T).
+    b: &'a DMatrix<f64>,
+    gdiag: Vec<f64>,
+    inv_r: f64,
+    /// Prior information and mean in the rotated whitened coordinates.
+    lam0y: DMatrix<f64>,
+    m0y: Vec<f64>,
+}
+
+/// The forward pass over frames `a..a + sof.len()`, started from the prior at frame `a`.
+struct Run {
+    a: usize,
+    /// Non-canonical states (ids `canon.len()..`).
+    states: Vec<LState>,
+    /// Dense states of the frames `a..a + dense.len()`.
+    dense: Vec<Dense>,
+    /// State id per frame (`u32::MAX` in the dense prefix).
+    sof: Vec<u32>,
+    /// Filtered means, row-major (frames × n).
+    mf: Vec<f64>,
+    trans: HashMap<(u32, u32), u32>,
+}
+
+impl Run {
+    /// Takes the frames `from..` of `other` (a run that agrees with this one at `from − 1`,
+    /// [`Ctx::agree`]); `self` must end at `from`.
+    fn append(&mut self, other: Run, from: usize, n_canon: usize) {
+        let n = self.mf.len() / self.sof.len().max(1);
+        let base = self.states.len() as u32;
+        let remap = |id: u32| {
+            if (id as usize) < n_canon || id == u32::MAX {
+                id
+            } else {
+                id + base
+            }
+        };
+        let skip = from - other.a;
+        self.states.extend(other.states.into_iter().map(|mut st| {
+            st.old = st.old.map(remap);
+            st
+        }));
+        self.sof
+            .extend(other.sof[skip..].iter().map(|&id| remap(id)));
+        self.mf.extend_from_slice(&other.mf[skip * n..]);
+    }
+}
+
+impl Ctx<'_> {
+    /// Dense step (A.2, A.4 in the eigenbasis) from the predicted information `lam_pred`.
+    fn dense_step(&self, lam_pred: &DMatrix<f64>, pat: u32) -> Result<Dense> {
+        let n = self.setup.n;
+        let mut lam = lam_pred.clone();
+        for c in 0..n {
+            lam[(c, c)] += self.gdiag[c] * self.inv_r;
+        }
+        for &i in &self.setup.pats.missing[pat as usize] {
+            let r = self.setup.us_row(i as usize);
+            for bb in 0..n {
+                for a in 0..n {
+                    lam[(a, bb)] -= r[a] * r[bb];
+                }
+            }
+        }
+        let chol = cholesky_lower(&lam).ok_or_else(|| {
+            AcmError::Numerical("the filter information matrix is not positive definite".into())
+        })?;
+        for c in 0..n {
+            lam[(c, c)] += 1.0;
+        }
+        let m = spd_inverse_lower(&lam).ok_or_else(|| {
+            AcmError::Numerical("I + information is not positive definite".into())
+        })?;
+        let mut e = -m.clone();
+        for c in 0..n {
+            e[(c, c)] += self.setup.mu[c];
+        }
+        // ‖E‖₂ ≤ (tr E⁴)^{1/4} = ‖E²‖_F^{1/2}.
+        let e2 = &e * &e;
+        Ok(Dense {
+            chol,
+            e_norm: e2.norm().sqrt(),
+            m,
+        })
+    }
+
+    /// The forward pass over frames `a..b` from the prior at frame `a`; `None` outside the
+    /// small-gain regime.
+    fn run(&self, a: usize, b: usize) -> Result<Option<Run>> {
+        let run = Run {
+            a,
+            states: Vec::new(),
+            dense: Vec::new(),
+            sof: Vec::with_capacity(b - a),
+            mf: Vec::with_capacity((b - a) * self.setup.n),
+            trans: HashMap::new(),
+        };
+        self.extend(run, b)
+    }
+
+    /// Continues `run` up to frame `b` (exclusive).
+    fn extend(&self, mut run: Run, b: usize) -> Result<Option<Run>> {
+        let setup = self.setup;
+        let pats = setup.pats;
+        let n = setup.n;
+        let tol = setup.tol;
+        let mut h = vec![0.0; n];
+        let mut tmp = Vec::new();
+        let mut m_hat = vec![0.0; n];
+        for t in run.a + run.sof.len()..b {
+            let local = t - run.a;
+            let pat = pats.of_frame[t];
+            if local == 0 {
+                m_hat.copy_from_slice(&self.m0y);
+            } else {
+                m_hat.copy_from_slice(&run.mf[(local - 1) * n..local * n]);
+            }
+            // h = (b_t − G_t m̂) / r, G_t m̂ = g ∘ m̂ − Σ_missing v_y,i (v_y,iᵀ m̂).
+            for c in 0..n {
+                h[c] = self.b[(c, t)] - self.gdiag[c] * m_hat[c];
+            }
+            for &i in &pats.missing[pat as usize] {
+                // v_y,i (v_y,iᵀ m̂) = r · us_i (us_iᵀ m̂), us_i = v_y,i / √r.
+                let r = setup.us_row(i as usize);
+                let p: f64 = dot(r, &m_hat) / self.inv_r;
+                for (hc, rc) in h.iter_mut().zip(r) {
+                    *hc += p * rc;
+                }
+            }
+            for hc in h.iter_mut() {
+                *hc *= self.inv_r;
+            }
+            let prev = run.sof.last().copied().filter(|&s| s != u32::MAX);
+            if local == 0 {
+                run.dense.push(self.dense_step(&self.lam0y, pat)?);
+                chol_solve_in_place(&run.dense[0].chol, &mut h);
+                run.sof.push(u32::MAX);
+            } else {
+                let key = (prev.unwrap_or(u32::MAX), pat);
+                let known = prev.and_then(|_| run.trans.get(&key).copied());
+                let sid = match known {
+                    Some(s) => Some(s),
+                    None => {
+                        let pool = Pool {
+                            canon: &self.canon,
+                            local: &run.states,
+                        };
+                        let c_id = pat;
+                        let e_prev = match prev {
+                            Some(p) => pool.get(p).e_norm,
+                            None => run.dense[local - 1].e_norm,
+                        };
+                        if pool.get(c_id).pnorm * e_prev <= tol {
+                            Some(c_id)
+                        } else if let Some(p) = prev {
+                            match setup.state(pool, Some(p), pat)? {
+                                Some(st) => {
+                                    run.states.push(st);
+                                    Some((self.canon.len() + run.states.len() - 1) as u32)
+                                }
+                                None => return Ok(None),
+                            }
+                        } else {
+                            None
+                        }
+                    }
+                };
+                match sid {
+                    Some(s) => {
+                        if prev.is_some() {
+                            run.trans.insert(key, s);
+                        }
+                        run.sof.push(s);
+                        let pool = Pool {
+                            canon: &self.canon,
+                            local: &run.states,
+                        };
+                        setup.solve(pool, pool.get(s), &mut h, &mut tmp);
+                    }
+                    None => {
+                        // Still in the dense prefix: P̂⁻¹ = I − M_{t−1}.
+                        if local >= DENSE_PREFIX {
+                            return Ok(None);
+                        }
+                        let mut lam_pred = -run.dense[local - 1].m.clone();
+                        for c in 0..n {
+                            lam_pred[(c, c)] += 1.0;
+                        }
+                        run.dense.push(self.dense_step(&lam_pred, pat)?);
+                        chol_solve_in_place(&run.dense[local].chol, &mut h);
+                        run.sof.push(u32::MAX);
+                    }
+                }
+            }
+            for (a, hc) in m_hat.iter_mut().zip(&h) {
+                *a += hc;
+            }
+            run.mf.extend_from_slice(&m_hat);
+        }
+        Ok(Some(run))
+    }
+
+    /// Whether two runs agree at frame `t`: the same canonical state (so the same future
+    /// recursion) and filtered means within the tolerance (relative, max norm).
+    fn agree(&self, first: &Run, second: &Run, t: usize) -> bool {
+        let n = self.setup.n;
+        let (i, j) = (t - first.a, t - second.a);
+        let (s1, s2) = (first.sof[i], second.sof[j]);
+        if s1 != s2 || (s1 as usize) >= self.canon.len() {
+            return false;
+        }
+        let (m1, m2) = (
+            &first.mf[i * n..(i + 1) * n],
+            &second.mf[j * n..(j + 1) * n],
+        );
+        let scale = m1.iter().fold(1.0_f64, |a, v| a.max(v.abs()));
+        m1.iter()
+            .zip(m2)
+            .all(|(x, y)| (x - y).abs() <= self.setup.tol * scale)
+    }
+}
+
 /// Filter and RTS smoother means with low-rank states (module docs), or `None` when the model
 /// is outside the small-gain regime (the caller then runs the dense smoother).
 pub fn smooth_means(
@@ -584,163 +833,88 @@ pub fn smooth_means(
     }
     let gdiag: Vec<f64> = g.iter().map(|&v| v.max(0.0)).collect();
 
-    // Dense prefix (A.2, A.4 in the eigenbasis): from the prior until the dense state is
-    // forgotten at once by the next canonical state.
-    let dense_step = |lam_pred: &DMatrix<f64>, pat: u32| -> Result<Dense> {
-        let mut lam = lam_pred.clone();
-        for c in 0..n {
-            lam[(c, c)] += gdiag[c] * w.inv_r;
-        }
-        for &i in &pats.missing[pat as usize] {
-            let r = setup.us_row(i as usize);
-            for bb in 0..n {
-                for a in 0..n {
-                    lam[(a, bb)] -= r[a] * r[bb];
-                }
-            }
-        }
-        let chol = cholesky_lower(&lam).ok_or_else(|| {
-            AcmError::Numerical("the filter information matrix is not positive definite".into())
-        })?;
-        for c in 0..n {
-            lam[(c, c)] += 1.0;
-        }
-        let m = spd_inverse_lower(&lam).ok_or_else(|| {
-            AcmError::Numerical("I + information is not positive definite".into())
-        })?;
-        let mut e = -m.clone();
-        for c in 0..n {
-            e[(c, c)] += setup.mu[c];
-        }
-        // ‖E‖₂ ≤ (tr E⁴)^{1/4} = ‖E²‖_F^{1/2}.
-        let e2 = &e * &e;
-        Ok(Dense {
-            chol,
-            e_norm: e2.norm().sqrt(),
-            m,
-        })
-    };
     let lam0 = super::linalg::unpack_symmetric(&w.lam0_packed, n);
-    let mut dense: Vec<Dense> = vec![dense_step(&(u.transpose() * lam0 * &u), pats.of_frame[0])?];
-
     // Canonical states of every pattern (independent of the history: in parallel).
     let canonical: Vec<Option<LState>> = (0..pats.missing.len() as u32)
         .into_par_iter()
-        .map(|p| setup.state(&[], None, p))
+        .map(|p| {
+            setup.state(
+                Pool {
+                    canon: &[],
+                    local: &[],
+                },
+                None,
+                p,
+            )
+        })
         .collect::<Result<_>>()?;
     if canonical.iter().any(Option::is_none) {
         return Ok(None);
     }
-    let mut states: Vec<LState> = canonical.into_iter().flatten().collect();
-    let canon: Vec<u32> = (0..states.len() as u32).collect();
-    // Forward pass: states and filter means.
-    let mut trans: HashMap<(u32, u32), u32> = HashMap::new();
-    let mut sof = vec![0u32; t_len]; // low-rank state of frame t ≥ dense.len()
-    let mut mf = vec![0.0; t_len * n];
-    let m0y = u.transpose() * &w.m0;
-    let mut h = vec![0.0; n];
-    let mut tmp = Vec::new();
-    let mut prev: Option<u32> = None; // None while in the dense prefix
-    for t in 0..t_len {
-        let pat = pats.of_frame[t];
-        let (done, rest) = mf.split_at_mut(t * n);
-        let m_hat: &[f64] = if t == 0 {
-            m0y.as_slice()
-        } else {
-            &done[(t - 1) * n..]
+    let ctx = Ctx {
+        setup: &setup,
+        canon: canonical.into_iter().flatten().collect(),
+        b: &b,
+        gdiag,
+        inv_r: w.inv_r,
+        lam0y: u.transpose() * lam0 * &u,
+        m0y: (u.transpose() * &w.m0).as_slice().to_vec(),
+    };
+    // Forward pass: one run, or two in parallel stitched where they agree.
+    let split = t_len / 2;
+    let run = if rayon::current_num_threads() >= 2 && t_len >= 2 * MIN_FORWARD {
+        let (first, second) = rayon::join(
+            || ctx.run(0, split),
+            || ctx.run(split - FORWARD_BURN_IN, t_len),
+        );
+        let mut first = match first? {
+            Some(r) => r,
+            None => return Ok(None),
         };
-        // h = (b_t − G_t m̂) / r, G_t m̂ = g ∘ m̂ − Σ_missing v_y,i (v_y,iᵀ m̂).
-        for c in 0..n {
-            h[c] = b[(c, t)] - gdiag[c] * m_hat[c];
-        }
-        for &i in &pats.missing[pat as usize] {
-            // v_y,i (v_y,iᵀ m̂) = r · us_i (us_iᵀ m̂), us_i = v_y,i / √r.
-            let r = setup.us_row(i as usize);
-            let p: f64 = r.iter().zip(m_hat).map(|(a, m)| a * m).sum::<f64>() / w.inv_r;
-            for (hc, rc) in h.iter_mut().zip(r) {
-                *hc += p * rc;
+        match second? {
+            Some(second) if ctx.agree(&first, &second, split - 1) => {
+                first.append(second, split, ctx.canon.len());
+                first
             }
+            _ => match ctx.extend(first, t_len)? {
+                Some(r) => r,
+                None => return Ok(None),
+            },
         }
-        for hc in h.iter_mut() {
-            *hc *= w.inv_r;
+    } else {
+        match ctx.run(0, t_len)? {
+            Some(r) => r,
+            None => return Ok(None),
         }
-        if t == 0 {
-            chol_solve_in_place(&dense[0].chol, &mut h);
-        } else {
-            let key = (prev.unwrap_or(u32::MAX), pat);
-            let sid = match (prev, trans.get(&key)) {
-                (Some(_), Some(&s)) => Some(s),
-                _ => {
-                    let c_id = canon[pat as usize];
-                    let e_prev = match prev {
-                        Some(p) => states[p as usize].e_norm,
-                        None => dense[t - 1].e_norm,
-                    };
-                    if states[c_id as usize].pnorm * e_prev <= tol {
-                        Some(c_id)
-                    } else if let Some(p) = prev {
-                        match setup.state(&states, Some(p), pat)? {
-                            Some(st) => {
-                                states.push(st);
-                                Some(states.len() as u32 - 1)
-                            }
-                            None => return Ok(None),
-                        }
-                    } else {
-                        None
-                    }
-                }
-            };
-            match sid {
-                Some(s) => {
-                    if prev.is_some() {
-                        trans.insert(key, s);
-                    }
-                    sof[t] = s;
-                    prev = Some(s);
-                    setup.solve(&states, &states[s as usize], &mut h, &mut tmp);
-                }
-                None => {
-                    // Still in the dense prefix: P̂⁻¹ = I − M_{t−1}.
-                    if t >= DENSE_PREFIX {
-                        return Ok(None);
-                    }
-                    let mut lam_pred = -dense[t - 1].m.clone();
-                    for c in 0..n {
-                        lam_pred[(c, c)] += 1.0;
-                    }
-                    dense.push(dense_step(&lam_pred, pat)?);
-                    chol_solve_in_place(&dense[t].chol, &mut h);
-                }
-            }
-        }
-        for (o, (a, hc)) in rest[..n].iter_mut().zip(m_hat.iter().zip(&h)) {
-            *o = a + hc;
-        }
-    }
+    };
+    let pool = Pool {
+        canon: &ctx.canon,
+        local: &run.states,
+    };
     // Backward pass (A.7): m̃_t = m_t + M_t (m̃_{t+1} − m_t).
+    let mf = &run.mf;
     let mut ms = mf.clone();
     let mut diff = vec![0.0; n];
     let mut corr = vec![0.0; n];
+    let mut tmp = Vec::new();
     for t in (0..t_len - 1).rev() {
         for c in 0..n {
             diff[c] = ms[(t + 1) * n + c] - mf[t * n + c];
         }
-        if t < dense.len() {
-            let v = &dense[t].m * nalgebra::DVector::from_column_slice(&diff);
+        if t < run.dense.len() {
+            let v = &run.dense[t].m * nalgebra::DVector::from_column_slice(&diff);
             corr.copy_from_slice(v.as_slice());
         } else {
-            setup.gain(&states[sof[t] as usize], &diff, &mut corr, &mut tmp);
+            setup.gain(pool.get(run.sof[t]), &diff, &mut corr, &mut tmp);
         }
         for (o, cc) in ms[t * n..(t + 1) * n].iter_mut().zip(&corr) {
             *o += cc;
         }
     }
-    // Back to the original coordinates: m̃ = L U m̃_y.
     Ok(Some(LowRankMeans {
         y: ms,
         to_orig: &w.l * &u,
-        states: states.len() + dense.len(),
+        states: ctx.canon.len() + run.states.len() + run.dense.len(),
     }))
 }
 
@@ -818,6 +992,30 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn parallel_forward_runs_equal_the_sequential_one() {
+        // Long enough for two forward runs (stitched after the second one's burn-in).
+        let (x, model) = toy(2 * MIN_FORWARD + 300, 15, 6, 3e-5, 7);
+        let pats = Patterns::new(&x, 15);
+        let dense = smooth(&x, &model, &pats, false, 0.0).unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
+        let lr = pool
+            .install(|| smooth_means(&x, &model, &pats, 1e-8))
+            .unwrap()
+            .expect("small-gain regime");
+        let scale = dense.m.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
+        let err = dense
+            .m
+            .iter()
+            .zip(&lr.means())
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(err <= 1e-6 * scale, "max difference {err} (scale {scale})");
     }
 
     #[test]
