@@ -874,7 +874,8 @@ fn cov_sums(sm: &Smoothed, pats: &Patterns) -> Result<CovSums> {
         if c == n {
             t_len
         } else {
-            c * (work - BWD_BURN_IN)
+            // (n > 1 implies work >= MIN_BWD_CHUNK > BWD_BURN_IN; with n = 1 only c = 0 here)
+            c * work.saturating_sub(BWD_BURN_IN)
         }
     };
     let last_frame = |c: usize| {
