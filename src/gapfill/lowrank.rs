@@ -808,29 +808,48 @@ pub fn smooth_means(
         tol,
         cap: 2 * n + d,
     };
-    // Data terms b_t = Σ_present v_y,i (z_ti − m̄_i) (one product over all frames).
-    let mut zc = vec![0.0; t_len * d];
-    zc.par_chunks_mut(d).enumerate().for_each(|(t, row)| {
-        for (i, o) in row.iter_mut().enumerate() {
-            let z = x[t * d + i];
-            *o = if z.is_nan() { 0.0 } else { z - model.mean[i] };
-        }
-    });
-    // b = V_yᵀ Z_c (n × T), in column blocks on the threads.
-    let vyt = vy.transpose();
-    let blocks = rayon::current_num_threads().max(1);
-    let per = t_len.div_ceil(blocks);
-    let parts: Vec<DMatrix<f64>> = zc
-        .par_chunks(per * d)
-        .map(|c| &vyt * DMatrix::from_column_slice(d, c.len() / d, c))
-        .collect();
+    // Data terms b_t = Σ_present v_y,i (z_ti − m̄_i): B = V_yᵀ Z_c (n × T), written in place
+    // by column blocks on the threads (one GEMM per block; Z_c exists only per block).
     let mut b = DMatrix::<f64>::zeros(n, t_len);
-    let mut col = 0;
-    for p in parts {
-        let w_ = p.ncols();
-        b.columns_mut(col, w_).copy_from(&p);
-        col += w_;
-    }
+    let per = t_len
+        .div_ceil(4 * rayon::current_num_threads().max(1))
+        .max(1);
+    b.as_mut_slice()
+        .par_chunks_mut(per * n)
+        .enumerate()
+        .for_each(|(blk, out)| {
+            let t0 = blk * per;
+            let cols = out.len() / n;
+            let mut zc = vec![0.0; cols * d];
+            for (tt, row) in zc.chunks_exact_mut(d).enumerate() {
+                let xr = &x[(t0 + tt) * d..(t0 + tt + 1) * d];
+                for ((o, &z), m) in row.iter_mut().zip(xr).zip(&model.mean) {
+                    *o = if z.is_nan() { 0.0 } else { z - m };
+                }
+            }
+            // out (n × cols) = V_yᵀ (n × D) · zc (D × cols), all column-major: entry (c, i)
+            // of V_yᵀ is vy[(i, c)] at i + c·D (row stride D, column stride 1).
+            // SAFETY: the pointers address `vy` (D × n), `zc` (D × cols) and `out` (n × cols)
+            // with the strides given, all in bounds; `out` is exclusively borrowed.
+            unsafe {
+                matrixmultiply::dgemm(
+                    n,
+                    d,
+                    cols,
+                    1.0,
+                    vy.as_ptr(),
+                    d as isize,
+                    1,
+                    zc.as_ptr(),
+                    1,
+                    d as isize,
+                    0.0,
+                    out.as_mut_ptr(),
+                    1,
+                    n as isize,
+                );
+            }
+        });
     let gdiag: Vec<f64> = g.iter().map(|&v| v.max(0.0)).collect();
 
     let lam0 = super::linalg::unpack_symmetric(&w.lam0_packed, n);
