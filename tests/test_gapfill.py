@@ -224,6 +224,63 @@ def test_no_gaps_is_identity(seq):
     np.testing.assert_array_equal(fill(seq), seq)
 
 
+def independent_smooth(n_frames: int = 600, n_markers: int = 10, seed: int = 0) -> np.ndarray:
+    """Every coordinate an independent sum of 3 slow sinusoids (mm) + 0.1 mm noise: no
+    low-dimensional structure, so a subspace smoother cannot beat a spline on short gaps."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n_frames)[:, None] / 100.0
+    cols = [
+        (
+            rng.normal(0, 50, 3)
+            * np.sin(2 * np.pi * rng.uniform(0.2, 1.5, 3) * t + rng.uniform(0, 6, 3))
+        ).sum(axis=1)
+        + rng.uniform(-500, 500)
+        for _ in range(3 * n_markers)
+    ]
+    X = np.stack(cols, axis=1) + rng.normal(0, 0.1, (n_frames, 3 * n_markers))
+    return X.reshape(n_frames, n_markers, 3)
+
+
+def mean_error(F: np.ndarray, X: np.ndarray, G: np.ndarray) -> float:
+    mask = np.isnan(G[:, :, 0])
+    return float(np.linalg.norm(F - X, axis=2)[mask].mean())
+
+
+def test_auto_combination_keeps_the_smoother_where_it_wins(seq):
+    # Exact low rank + 0.1 mm noise: the smoother (0.2 mm) beats the spline (several mm) at
+    # every gap length, so the calibrated threshold stays (almost) 0 and the default equals
+    # the border-residual fill.
+    G = gapped(seq)
+    auto = fill(G, full_output=True)
+    residual = fill(G, combine="residual")
+    assert auto.info["options"]["combine"] == "auto"
+    assert auto.info["short_gap"] <= 1
+    assert mean_error(auto.filled, seq, G) <= 1.05 * mean_error(residual, seq, G) + 1e-9
+    assert mean_error(auto.filled, seq, G) < 0.3
+    assert mean_error(fill(G, method="spline"), seq, G) > 1.0
+
+
+def test_auto_combination_takes_the_spline_where_it_wins():
+    # Independent smooth coordinates with short gaps (1-9 frames): the spline wins, the
+    # calibration must find a threshold that covers these gaps and the fill must follow it.
+    X = independent_smooth()
+    G = X.copy()
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        m, L = rng.integers(X.shape[1]), int(rng.integers(1, 10))
+        s = int(rng.integers(1, X.shape[0] - L - 1))
+        G[s : s + L, m] = np.nan
+    auto = fill(G, full_output=True)
+    residual = fill(G, combine="residual")
+    spline = fill(G, method="spline")
+    assert auto.info["short_gap"] >= 9
+    np.testing.assert_allclose(auto.filled, spline, atol=1e-9)
+    assert mean_error(auto.filled, X, G) < 0.6 * mean_error(residual, X, G)
+    # an explicit threshold overrides the calibration
+    assert fill(G, full_output=True, short_gap=0).info["short_gap"] == 0
+    np.testing.assert_allclose(fill(G, short_gap=0), residual, atol=1e-9)
+
+
 def test_evaluation_protocol(seq, tmp_path):
     G = insert_gaps(seq, 100.0, np.random.default_rng(0))
     assert np.isnan(G).any() and (np.isnan(G[:, :, 0]).sum(axis=0) <= seq.shape[0] - 2).all()

@@ -16,8 +16,8 @@
 //! * the subspace is learned even when few or no frames are complete (impute → SVD → smooth,
 //!   [`subspace`]); frames with every marker missing are plain prediction steps;
 //! * R = r·I and Q are learned by expectation-maximisation ([`smoother::em`]);
-//! * the border residual is carried into the gap (no jumps) and short gaps can go to a cubic
-//!   spline with a threshold calibrated on the data itself ([`combine`]);
+//! * the border residual is carried into the gap (no jumps) and short gaps go to a cubic
+//!   spline, up to a length calibrated on the data itself ([`combine`]);
 //! * the published defects are fixed: the RTS gain is `P_t P̂_{t+1}⁻¹` (printed: `P_t P̂_t⁻¹`),
 //!   the initial covariance is a covariance, Q is a covariance of projected frame differences
 //!   (not a projected standard deviation), and the energy criterion uses squared singular values.
@@ -110,7 +110,7 @@ pub enum Combine {
     /// the gap (removes the jumps at gap borders).
     Residual,
     /// `Residual`, and gaps of at most `short_gap` frames filled by the cubic spline instead;
-    /// `short_gap = None` calibrates the threshold on the data.
+    /// `short_gap = None` calibrates the threshold on the data (default).
     Auto,
 }
 
@@ -164,7 +164,7 @@ impl Default for Options {
             paper_q: false,
             subspace_iters: 2,
             min_complete: 0,
-            combine: Combine::Residual,
+            combine: Combine::Auto,
             short_gap: None,
             keep_original: true,
             want_std: false,

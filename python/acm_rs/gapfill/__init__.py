@@ -30,7 +30,7 @@ _DEFAULTS: dict[str, Any] = {
     "paper_q": False,
     "subspace_iters": 2,
     "min_complete": 0,
-    "combine": "residual",
+    "combine": "auto",
     "short_gap": None,
     "keep_original": True,
     "memo_tol": 1e-6,
@@ -108,7 +108,8 @@ def fill(
     method : {"lowdim", "lowdim-paper", "linear", "spline", "rw", "cv", "msvd"}
         ``"lowdim"`` (default): low-dimensional Kalman smoothing (Burke & Lasenby 2016,
         Algorithm 1) with the RTS gain fixed, Q and R learned by EM, a subspace that also works
-        without complete frames, and border-residual correction. ``"lowdim-paper"``: the
+        without complete frames, border-residual correction and the cubic spline on short gaps
+        (length threshold calibrated on the data). ``"lowdim-paper"``: the
         published settings. Baselines: linear and natural cubic spline interpolation per
         coordinate, random-walk (``"rw"``) and constant-velocity (``"cv"``) RTS smoothing per
         coordinate, iterative low-rank imputation (``"msvd"``).
@@ -127,9 +128,11 @@ def fill(
         ``subspace_iters`` (impute → SVD →
         smooth rounds when complete frames are scarce, default 2), ``min_complete`` (complete
         frames needed to skip those rounds; 0 = max(3 × n_markers, 10)), ``combine``
-        (``"none"``, ``"residual"`` (default), ``"auto"``: residual plus spline for gaps
-        up to ``short_gap`` frames),
-        ``short_gap`` (frames; ``None`` = calibrated on the data), ``keep_original``
+        (``"none"``; ``"residual"``: the observed-minus-smoothed residual at both borders
+        carried into each gap; ``"auto"`` (default): residual, plus the cubic spline for gaps
+        up to ``short_gap`` frames), ``short_gap`` (frames; ``None`` = calibrated on the data
+        by hiding probe gaps of 1-400 frames; the posterior ``std`` stays the smoother's
+        also where the spline fills), ``keep_original``
         (default True), ``memo_tol`` (1e-6), ``seed`` (calibration seed).
 
     Returns
