@@ -81,38 +81,56 @@ pub fn linear(seq: &Seq<'_>) -> Vec<f64> {
 pub fn spline(seq: &Seq<'_>) -> Vec<f64> {
     per_column(seq, |_, col| {
         let (ts, vs) = observed(col);
-        let n = ts.len();
-        let m2 = natural_second_derivatives(&ts, &vs);
-        let mut out = Vec::with_capacity(col.len());
-        let mut k = 0;
-        for (i, c) in col.iter().enumerate() {
-            if let Some(v) = *c {
-                out.push(v);
-                continue;
-            }
-            let x = i as f64;
-            if n == 1 || x < ts[0] {
-                out.push(vs[0]);
-                continue;
-            }
-            if x > ts[n - 1] {
-                out.push(vs[n - 1]);
-                continue;
-            }
-            while k + 1 < n && ts[k + 1] < x {
-                k += 1;
-            }
-            let h = ts[k + 1] - ts[k];
-            let a = (ts[k + 1] - x) / h;
-            let b = (x - ts[k]) / h;
-            out.push(
-                a * vs[k]
-                    + b * vs[k + 1]
-                    + ((a * a * a - a) * m2[k] + (b * b * b - b) * m2[k + 1]) * h * h / 6.0,
-            );
-        }
-        out
+        let sp = Spline::new(ts, vs);
+        col.iter()
+            .enumerate()
+            .map(|(i, c)| c.unwrap_or_else(|| sp.eval(i as f64)))
+            .collect()
     })
+}
+
+/// The natural cubic spline through the observed samples `(ts, vs)` of one coordinate
+/// (`ts` increasing; at least one sample).
+pub struct Spline {
+    ts: Vec<f64>,
+    vs: Vec<f64>,
+    m2: Vec<f64>,
+}
+
+impl Spline {
+    /// Fits the spline (one tridiagonal solve).
+    pub fn new(ts: Vec<f64>, vs: Vec<f64>) -> Self {
+        let m2 = natural_second_derivatives(&ts, &vs);
+        Self { ts, vs, m2 }
+    }
+
+    /// The spline through the observed samples of coordinate `j` of `seq`.
+    pub fn of_column(seq: &Seq<'_>, j: usize) -> Self {
+        let (ts, vs) = (0..seq.t)
+            .map(|i| (i as f64, seq.at(i, j)))
+            .filter(|(_, v)| !v.is_nan())
+            .unzip();
+        Self::new(ts, vs)
+    }
+
+    /// Value at `x` (constant beyond the first and last sample).
+    pub fn eval(&self, x: f64) -> f64 {
+        let (ts, vs, n) = (&self.ts, &self.vs, self.ts.len());
+        if n == 1 || x <= ts[0] {
+            return vs[0];
+        }
+        if x >= ts[n - 1] {
+            return vs[n - 1];
+        }
+        // ts[k] < x <= ts[k + 1]
+        let k = ts.partition_point(|&t| t < x) - 1;
+        let h = ts[k + 1] - ts[k];
+        let a = (ts[k + 1] - x) / h;
+        let b = (x - ts[k]) / h;
+        a * vs[k]
+            + b * vs[k + 1]
+            + ((a * a * a - a) * self.m2[k] + (b * b * b - b) * self.m2[k + 1]) * h * h / 6.0
+    }
 }
 
 /// Second derivatives of the natural cubic spline through `(ts, vs)` (tridiagonal solve).

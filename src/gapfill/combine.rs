@@ -2,10 +2,11 @@
 //! imputed frames), noise learning, smoothing, back-projection, border-residual correction and
 //! the automatic spline / smoother combination.
 
+use super::baselines::{self, Spline};
 use super::lowrank;
 use super::smoother::{self, Model, Patterns};
 use super::subspace::{self, Subspace};
-use super::{baselines, gaps_of, Combine, Filled, Info, Method, Options, Seq};
+use super::{all_gaps, Combine, Filled, Info, Method, Options, Seq};
 use crate::error::{AcmError, Result};
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
@@ -24,7 +25,13 @@ pub fn fill_lowdim(seq: &Seq<'_>, opts: &Options) -> Result<Filled> {
         complete_frames: complete.len(),
         ..Info::default()
     };
-    let (mut y, std, model) = if paper || complete.len() >= min_complete {
+    // The spline threshold is calibrated with the final model.
+    let calibrate = opts.combine == Combine::Auto && opts.short_gap.is_none();
+    let Run {
+        mut y,
+        std,
+        short_gap,
+    } = if paper || complete.len() >= min_complete {
         if complete.len() < 2 {
             return Err(AcmError::Invalid(format!(
                 "the published method learns its subspace from complete frames and found {} \
@@ -50,7 +57,7 @@ pub fn fill_lowdim(seq: &Seq<'_>, opts: &Options) -> Result<Filled> {
                 subspace::q_from_pairs(seq.x, d, &pairs, &sub)
             }
         };
-        run(seq, &sub, q, opts, paper, &mut info)?
+        run(seq, &sub, q, opts, paper, calibrate, &mut info)?
     } else {
         // Beyond the paper (a): too few complete frames. Impute (linear interpolation), learn
         // the subspace from all frames, smooth, and repeat with the smoothed fill.
@@ -68,47 +75,53 @@ pub fn fill_lowdim(seq: &Seq<'_>, opts: &Options) -> Result<Filled> {
                 subspace::q_from_pairs(&cur, d, &all_pairs, &sub)
             };
             let mut o = opts.clone();
-            o.want_std = opts.want_std && round + 1 == rounds;
-            let (yy, ss, model) = run(seq, &sub, q, &o, false, &mut info)?;
-            cur = yy.clone();
+            let final_round = round + 1 == rounds;
+            o.want_std = opts.want_std && final_round;
+            let out = run(seq, &sub, q, &o, false, calibrate && final_round, &mut info)?;
+            cur = out.y.clone();
             for (c, v) in cur.iter_mut().zip(seq.x) {
                 if !v.is_nan() {
                     *c = *v;
                 }
             }
-            last = Some((yy, ss, model));
+            last = Some(out);
         }
         last.expect("at least one round")
     };
-    match opts.combine {
-        Combine::None => {}
-        Combine::Residual => carry_residuals(seq, &mut y),
-        Combine::Auto => {
-            carry_residuals(seq, &mut y);
-            let l = match opts.short_gap {
-                Some(l) => l,
-                None => calibrate_short_gap(seq, opts, &model)?,
-            };
+    if opts.combine != Combine::None {
+        let gaps = all_gaps(seq);
+        carry_residuals(seq, &gaps, &mut y);
+        if opts.combine == Combine::Auto {
+            let l = opts.short_gap.or(short_gap).unwrap_or(0);
             info.short_gap = l;
-            if l > 0 {
-                let sp = baselines::spline(seq);
-                splice_short_gaps(seq, &mut y, &sp, l);
-            }
+            splice_short_gaps(seq, &gaps, &mut y, l);
         }
     }
     Ok(Filled { x: y, std, info })
 }
 
+/// What [`run`] returns.
+struct Run {
+    /// The back-projected smoothed sequence, row-major T × D.
+    y: Vec<f64>,
+    /// Predictive standard deviations, if requested.
+    std: Option<Vec<f64>>,
+    /// The calibrated spline threshold, if requested.
+    short_gap: Option<usize>,
+}
+
 /// Builds the model, learns the noise (EM) and smooths: returns the back-projection and,
-/// if requested, the predictive standard deviations.
+/// if requested, the predictive standard deviations and (`calibrate`) the spline threshold of
+/// [`calibrate_short_gap`] for the learned model.
 fn run(
     seq: &Seq<'_>,
     sub: &Subspace,
     q: DMatrix<f64>,
     opts: &Options,
     paper: bool,
+    calibrate: bool,
     info: &mut Info,
-) -> Result<(Vec<f64>, Option<Vec<f64>>, Model)> {
+) -> Result<Run> {
     let k = sub.dim();
     let r0 = opts.r.unwrap_or_else(|| {
         if paper {
@@ -154,7 +167,12 @@ fn run(
     info.r = model.r;
     info.q_trace = model.q.trace();
     let (y, std) = smooth_with(seq, &model, opts, info)?;
-    Ok((y, std, model))
+    // (Sequential: run alongside the smoothing with rayon::join it was slower on 2 cores,
+    // 25,000 × 47 frames 1.14 vs 1.05 s; both are parallel already.)
+    let short_gap = calibrate
+        .then(|| calibrate_short_gap(seq, opts, &model))
+        .transpose()?;
+    Ok(Run { y, std, short_gap })
 }
 
 /// Smooths `seq` with a fixed `model` (no learning) and back-projects (Algorithm 1, RTS part
@@ -210,13 +228,14 @@ fn centred_block(t: usize, max: usize) -> (usize, usize) {
 /// Beyond the paper (c): adds to every gap the observed-minus-smoothed residual of its border
 /// frames, blended linearly across the gap (one side only at the ends of the sequence), so the
 /// fill joins the observed trajectory without a jump.
-pub fn carry_residuals(seq: &Seq<'_>, y: &mut [f64]) {
+/// `gaps` = [`all_gaps`]`(seq)`.
+pub fn carry_residuals(seq: &Seq<'_>, gaps: &[Vec<(usize, usize)>], y: &mut [f64]) {
     let d = seq.d;
     let cols: Vec<Vec<(usize, f64)>> = (0..d)
         .into_par_iter()
         .map(|j| {
             let mut out = Vec::new();
-            for (a, b) in gaps_of(seq, j) {
+            for &(a, b) in &gaps[j] {
                 let left = (a > 0).then(|| seq.at(a - 1, j) - y[(a - 1) * d + j]);
                 let right = (b < seq.t).then(|| seq.at(b, j) - y[b * d + j]);
                 for i in a..b {
@@ -243,16 +262,32 @@ pub fn carry_residuals(seq: &Seq<'_>, y: &mut [f64]) {
 }
 
 /// Replaces the fill of every gap of at most `max_len` frames (bounded on both sides) by the
-/// spline fill `sp`.
-fn splice_short_gaps(seq: &Seq<'_>, y: &mut [f64], sp: &[f64], max_len: usize) {
+/// natural cubic spline through the observed samples of its coordinate (fitted only for the
+/// coordinates that have such gaps). `gaps` = [`all_gaps`]`(seq)`.
+fn splice_short_gaps(seq: &Seq<'_>, gaps: &[Vec<(usize, usize)>], y: &mut [f64], max_len: usize) {
+    if max_len == 0 {
+        return;
+    }
     let d = seq.d;
-    for j in 0..d {
-        for (a, b) in gaps_of(seq, j) {
-            if b - a <= max_len && a > 0 && b < seq.t {
-                for i in a..b {
-                    y[i * d + j] = sp[i * d + j];
-                }
+    let short = |&(a, b): &(usize, usize)| b - a <= max_len && a > 0 && b < seq.t;
+    let cols: Vec<Vec<(usize, f64)>> = (0..d)
+        .into_par_iter()
+        .map(|j| {
+            if !gaps[j].iter().any(short) {
+                return Vec::new();
             }
+            let sp = Spline::of_column(seq, j);
+            gaps[j]
+                .iter()
+                .filter(|g| short(g))
+                .flat_map(|&(a, b)| a..b)
+                .map(|i| (i, sp.eval(i as f64)))
+                .collect()
+        })
+        .collect();
+    for (j, col) in cols.into_iter().enumerate() {
+        for (i, v) in col {
+            y[i * d + j] = v;
         }
     }
 }
@@ -277,19 +312,27 @@ impl SplitMix {
 
 /// Gap lengths (frames) probed by [`calibrate_short_gap`] (those up to a quarter of the
 /// sequence).
-const PROBE_LENGTHS: [usize; 14] = [1, 2, 3, 5, 8, 12, 20, 30, 50, 80, 120, 180, 270, 400];
+const PROBE_LENGTHS: [usize; 13] = [1, 2, 3, 5, 8, 12, 20, 30, 50, 80, 120, 180, 270];
+/// Largest fraction of the marker-frames of the probe block hidden in one probe copy.
+const PROBE_FRACTION: f64 = 0.1;
+/// Most probe copies (short recordings need several to stay under [`PROBE_FRACTION`]).
+const MAX_PROBE_ROUNDS: usize = 8;
 /// Frames of the block in which [`calibrate_short_gap`] probes.
 const PROBE_FRAMES: usize = 6000;
 /// Probe gaps hidden per length.
-const PROBES_PER_LENGTH: usize = 20;
+fn probes_per_length(_l: usize) -> usize {
+    20
+}
 
-/// Beyond the paper (c): calibrates the spline/smoother threshold on the data itself (a
-/// centred block of at most [`PROBE_FRAMES`] frames). Hides
-/// extra marker gaps of the lengths [`PROBE_LENGTHS`] where the marker is observed, fills them
-/// with the spline and with the smoother *of the model learned from the data* (`model`: the
-/// probe only tests the fill, so the subspace and noise are not re-learned from a sequence with
-/// ~280 extra gaps, which made the smoother look worse than it is), and returns the length up
-/// to which the spline wins on balance (0 if the smoother is never worse).
+/// Beyond the paper (c): calibrates the spline/smoother threshold on the data itself. In a
+/// centred block of at most [`PROBE_FRAMES`] frames, hides extra marker gaps of the lengths
+/// [`PROBE_LENGTHS`] (up to a quarter of the block) where the marker is observed, in as many
+/// copies as needed to hide at most [`PROBE_FRACTION`] of the marker-frames in each (at most
+/// [`MAX_PROBE_ROUNDS`]), fills them with the spline and with the smoother *of the model
+/// learned from the data* (`model`: the probe only tests the fill; re-learning the subspace
+/// and noise from a copy with hundreds of extra gaps made the smoother look worse than it is),
+/// and returns the length up to which the spline wins on balance (0 if the smoother is never
+/// worse).
 pub fn calibrate_short_gap(seq: &Seq<'_>, opts: &Options, model: &Model) -> Result<usize> {
     // A centred block is enough to compare the two fills (and bounds the cost on long
     // recordings); the whole sequence if some coordinate is never observed in the block.
@@ -304,63 +347,74 @@ pub fn calibrate_short_gap(seq: &Seq<'_>, opts: &Options, model: &Model) -> Resu
         .into_iter()
         .filter(|&l| l + 2 <= t / 4)
         .collect();
-    let mut x = seq.x.to_vec();
-    let mut rng = SplitMix(opts.seed ^ 0x5EED_CA11);
-    let mut hidden: Vec<(usize, usize, usize)> = Vec::new(); // (marker, start, len)
-    for &l in &lengths {
-        let mut placed = 0;
-        for _ in 0..400 {
-            if placed >= PROBES_PER_LENGTH {
-                break;
-            }
-            let m = rng.below(n_markers);
-            let s = 1 + rng.below(t - l - 1);
-            let ok = (s - 1..s + l + 1).all(|i| (0..3).all(|c| !x[i * d + 3 * m + c].is_nan()));
-            if ok {
-                for i in s..s + l {
-                    for c in 0..3 {
-                        x[i * d + 3 * m + c] = f64::NAN;
-                    }
-                }
-                hidden.push((m, s, l));
-                placed += 1;
-            }
-        }
-    }
-    if hidden.is_empty() {
+    if lengths.is_empty() {
         return Ok(0);
     }
-    let probe = Seq::new(&x, t, d)?;
+    // Rounds, so that one probe copy hides at most PROBE_FRACTION of the marker-frames.
+    let demand: usize = lengths.iter().map(|&l| l * probes_per_length(l)).sum();
+    let budget = ((PROBE_FRACTION * (t * n_markers) as f64) as usize).max(1);
+    let rounds = demand.div_ceil(budget).clamp(1, MAX_PROBE_ROUNDS);
     let mut o = opts.clone();
     o.combine = Combine::Residual;
     o.want_std = false;
-    let (mut lowdim, _) = smooth_with(&probe, model, &o, &mut Info::default())?;
-    carry_residuals(&probe, &mut lowdim);
-    let sp = baselines::spline(&probe);
-    let err = |f: &[f64], m: usize, s: usize, l: usize| -> f64 {
-        (s..s + l)
-            .map(|i| {
-                (0..3)
-                    .map(|c| {
-                        let e = f[i * d + 3 * m + c] - seq.x[i * d + 3 * m + c];
-                        e * e
-                    })
-                    .sum::<f64>()
-                    .sqrt()
-            })
-            .sum::<f64>()
-    };
+    let mut rng = SplitMix(opts.seed ^ 0x5EED_CA11);
+    // Per probed length: summed marker error of the spline and of the smoother, values hidden.
+    let mut sums = vec![(0.0, 0.0, 0usize); lengths.len()];
+    for _ in 0..rounds {
+        let mut x = seq.x.to_vec();
+        let mut hidden: Vec<(usize, usize, usize)> = Vec::new(); // (length index, marker, start)
+        for (li, &l) in lengths.iter().enumerate() {
+            let want = probes_per_length(l).div_ceil(rounds);
+            let mut placed = 0;
+            for _ in 0..20 * want {
+                if placed >= want {
+                    break;
+                }
+                let m = rng.below(n_markers);
+                let s = 1 + rng.below(t - l - 1);
+                let free =
+                    (s - 1..s + l + 1).all(|i| (0..3).all(|c| !x[i * d + 3 * m + c].is_nan()));
+                if free {
+                    for i in s..s + l {
+                        x[i * d + 3 * m..i * d + 3 * m + 3].fill(f64::NAN);
+                    }
+                    hidden.push((li, m, s));
+                    placed += 1;
+                }
+            }
+        }
+        if hidden.is_empty() {
+            continue;
+        }
+        let probe = Seq::new(&x, t, d)?;
+        let (mut lowdim, _) = smooth_with(&probe, model, &o, &mut Info::default())?;
+        carry_residuals(&probe, &all_gaps(&probe), &mut lowdim);
+        let sp = baselines::spline(&probe);
+        let err = |f: &[f64], m: usize, s: usize, l: usize| -> f64 {
+            (s..s + l)
+                .map(|i| {
+                    (0..3)
+                        .map(|c| {
+                            let e = f[i * d + 3 * m + c] - seq.x[i * d + 3 * m + c];
+                            e * e
+                        })
+                        .sum::<f64>()
+                        .sqrt()
+                })
+                .sum::<f64>()
+        };
+        for &(li, m, s) in &hidden {
+            let l = lengths[li];
+            sums[li].0 += err(&sp, m, s, l);
+            sums[li].1 += err(&lowdim, m, s, l);
+            sums[li].2 += l;
+        }
+    }
     // Threshold = the length that maximises the spline's cumulative advantage (mean error
     // per hidden value, smoother minus spline, summed over the probed lengths up to it): one
     // noisy length does not cut the threshold short, and 0 when the smoother never loses.
     let (mut best, mut gain, mut best_gain) = (0, 0.0, 0.0);
-    for &l in &lengths {
-        let (mut es, mut el, mut count) = (0.0, 0.0, 0usize);
-        for &(m, s, ll) in hidden.iter().filter(|h| h.2 == l) {
-            es += err(&sp, m, s, ll);
-            el += err(&lowdim, m, s, ll);
-            count += ll;
-        }
+    for (&l, &(es, el, count)) in lengths.iter().zip(&sums) {
         if count == 0 {
             continue;
         }
@@ -370,4 +424,80 @@ pub fn calibrate_short_gap(seq: &Seq<'_>, opts: &Options, model: &Model) -> Resu
         }
     }
     Ok(best)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gapfill::gaps_of;
+
+    /// A smooth 3-marker sequence with gaps of 1-40 frames, some at the ends.
+    fn gapped(t: usize, seed: u64) -> Vec<f64> {
+        let d = 9;
+        let mut x: Vec<f64> = (0..t * d)
+            .map(|k| {
+                let (i, j) = ((k / d) as f64, (k % d) as f64);
+                100.0 * (0.02 * i * (1.0 + 0.1 * j)).sin() + 10.0 * j
+            })
+            .collect();
+        let mut rng = SplitMix(seed);
+        for g in 0..30 {
+            let m = rng.below(3);
+            let len = 1 + rng.below(40);
+            let s = if g == 0 { 0 } else { rng.below(t - len) };
+            for i in s..s + len {
+                x[i * d + 3 * m..i * d + 3 * m + 3].fill(f64::NAN);
+            }
+        }
+        x
+    }
+
+    #[test]
+    fn all_gaps_equals_gaps_of_every_column() {
+        let x = gapped(300, 1);
+        let seq = Seq::new(&x, 300, 9).unwrap();
+        let gaps = all_gaps(&seq);
+        assert!(gaps.iter().any(|g| g.first().is_some_and(|&(a, _)| a == 0)));
+        for (j, g) in gaps.iter().enumerate() {
+            assert_eq!(g, &gaps_of(&seq, j));
+        }
+    }
+
+    #[test]
+    fn splice_puts_the_spline_exactly_in_short_bounded_gaps() {
+        let x = gapped(300, 2);
+        let seq = Seq::new(&x, 300, 9).unwrap();
+        let gaps = all_gaps(&seq);
+        let sp = baselines::spline(&seq);
+        let before = vec![-1e9; x.len()];
+        let mut y = before.clone();
+        splice_short_gaps(&seq, &gaps, &mut y, 12);
+        let (mut spliced, mut kept) = (0, 0);
+        for (j, g) in gaps.iter().enumerate() {
+            for &(a, b) in g {
+                let short = b - a <= 12 && a > 0 && b < seq.t;
+                for i in a..b {
+                    let v = y[i * 9 + j];
+                    if short {
+                        assert!((v - sp[i * 9 + j]).abs() < 1e-9, "frame {i} coordinate {j}");
+                        spliced += 1;
+                    } else {
+                        assert_eq!(v, -1e9);
+                        kept += 1;
+                    }
+                }
+            }
+        }
+        assert!(spliced > 0 && kept > 0);
+        // Observed values are never touched.
+        for (k, v) in x.iter().enumerate() {
+            if !v.is_nan() {
+                assert_eq!(y[k], before[k]);
+            }
+        }
+        // Threshold 0: nothing changes.
+        let mut z = before.clone();
+        splice_short_gaps(&seq, &gaps, &mut z, 0);
+        assert_eq!(z, before);
+    }
 }

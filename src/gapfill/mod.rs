@@ -414,3 +414,27 @@ pub fn gaps_of(seq: &Seq<'_>, j: usize) -> Vec<(usize, usize)> {
     }
     out
 }
+
+/// The gaps of every coordinate (`gaps[j]` = [`gaps_of`]`(seq, j)`), in one row-major pass.
+pub fn all_gaps(seq: &Seq<'_>) -> Vec<Vec<(usize, usize)>> {
+    let mut out = vec![Vec::new(); seq.d];
+    let mut start: Vec<Option<usize>> = vec![None; seq.d];
+    for (i, row) in seq.x.chunks_exact(seq.d).enumerate() {
+        for ((v, s), g) in row.iter().zip(start.iter_mut()).zip(out.iter_mut()) {
+            match (v.is_nan(), *s) {
+                (true, None) => *s = Some(i),
+                (false, Some(a)) => {
+                    g.push((a, i));
+                    *s = None;
+                }
+                _ => {}
+            }
+        }
+    }
+    for (s, g) in start.into_iter().zip(out.iter_mut()) {
+        if let Some(a) = s {
+            g.push((a, seq.t));
+        }
+    }
+    out
+}
