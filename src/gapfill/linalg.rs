@@ -3,6 +3,38 @@
 use crate::error::{AcmError, Result};
 use nalgebra::{DMatrix, SymmetricEigen};
 
+/// `out = Aᵀ B` (`ma × mb`, column-major) for column-major `A` (`n × ma`) and `B` (`n × mb`),
+/// through the `matrixmultiply` kernels.
+///
+/// # Panics
+/// If a slice is shorter than its shape.
+pub fn gemm_tn(a: &[f64], b: &[f64], n: usize, ma: usize, mb: usize, out: &mut [f64]) {
+    assert!(a.len() >= n * ma && b.len() >= n * mb && out.len() >= ma * mb);
+    if ma == 0 || mb == 0 {
+        return;
+    }
+    // SAFETY: the asserts above bound every index the strides reach: Aᵀ (ma × n) has entry
+    // (r, c) at r·n + c, B (n × mb) entry (r, c) at r + c·n, out (ma × mb) at r + c·ma.
+    unsafe {
+        matrixmultiply::dgemm(
+            ma,
+            n,
+            mb,
+            1.0,
+            a.as_ptr(),
+            n as isize,
+            1,
+            b.as_ptr(),
+            1,
+            n as isize,
+            0.0,
+            out.as_mut_ptr(),
+            1,
+            ma as isize,
+        );
+    }
+}
+
 /// Inverse of a symmetric positive-definite matrix by Cholesky; the result is symmetrised.
 pub fn spd_inverse(m: &DMatrix<f64>, what: &str) -> Result<DMatrix<f64>> {
     let chol = m.clone().cholesky().ok_or_else(|| {

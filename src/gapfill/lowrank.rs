@@ -29,7 +29,7 @@
 //! is below 10⁻³, the rank of `E_t` stays near the number of missing coordinates, and a state
 //! costs `O(d̂ q + q³)` instead of `≈ 1.3 d̂³`.
 
-use super::linalg::{chol_solve_in_place, cholesky_lower, dot, spd_inverse_lower};
+use super::linalg::{chol_solve_in_place, cholesky_lower, dot, gemm_tn, spd_inverse_lower};
 use super::smoother::{Model, Patterns, White};
 use crate::error::{AcmError, Result};
 use nalgebra::{DMatrix, SymmetricEigen};
@@ -206,7 +206,8 @@ impl Setup<'_> {
         let mut a_mu = DMatrix::<f64>::zeros(qp, qp);
         let mut gram = DMatrix::<f64>::zeros(qp, qp);
         let mut gram_lam = DMatrix::<f64>::zeros(qp, qp);
-        // Inherited columns scaled by the four weights (so every entry is one dot product).
+        // Inherited columns scaled by the four weights, S = [δ_f ∘ w_b] (n × 4 q_old), and
+        // R = Wᵀ S (qp × 4 q_old) by one GEMM: R[a, 4b + f] = w_aᵀ diag(δ_f) w_b.
         let weights = [&self.inv_lam, &self.mu, &self.mu2, &self.inv_lam2];
         let mut scaled = vec![0.0; 4 * n * q_old];
         for a in 0..q_old {
@@ -217,6 +218,14 @@ impl Setup<'_> {
                     *o = w * x;
                 }
             }
+        }
+        let mut rgram = vec![0.0; qp * 4 * q_old];
+        if q_old > 0 {
+            let mut wmat = Vec::with_capacity(n * qp);
+            for a in 0..qp {
+                wmat.extend_from_slice(self.w_col(z_old, q_old, miss, a));
+            }
+            gemm_tn(&wmat, &scaled, n, qp, 4 * q_old, &mut rgram);
         }
         for a in 0..qp {
             for b in 0..=a {
@@ -229,14 +238,8 @@ impl Setup<'_> {
                         self.h_lam2[ij],
                     ]
                 } else {
-                    let wa = self.w_col(z_old, q_old, miss, a);
-                    let sb = |f: usize| &scaled[(4 * b + f) * n..(4 * b + f + 1) * n];
-                    [
-                        dot(sb(0), wa),
-                        dot(sb(1), wa),
-                        dot(sb(2), wa),
-                        dot(sb(3), wa),
-                    ]
+                    let r = |f: usize| rgram[(4 * b + f) * qp + a];
+                    [r(0), r(1), r(2), r(3)]
                 };
                 a_lam[(a, b)] = v[0];
                 a_lam[(b, a)] = v[0];
