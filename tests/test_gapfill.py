@@ -220,6 +220,16 @@ def test_bad_options(seq):
         fill(gapped(seq), combine="best")
 
 
+def test_input_is_not_modified_and_partial_markers_count_as_missing(seq):
+    G = gapped(seq)
+    G[5, 2, 1] = np.nan  # one coordinate only: the whole marker is missing in that frame
+    before = G.copy()
+    res = fill(G, full_output=True)
+    np.testing.assert_array_equal(G, before)  # NaN-aware: the caller's array is untouched
+    assert res.imputed[5, 2].all() and np.isfinite(res.filled).all()
+    assert res.filled[5, 2, 0] != G[5, 2, 0]  # the observed x of that marker was re-estimated
+
+
 def test_no_gaps_is_identity(seq):
     np.testing.assert_array_equal(fill(seq), seq)
 

@@ -913,26 +913,57 @@ pub fn smooth_means(
         canon: &ctx.canon,
         local: &run.states,
     };
-    // Backward pass (A.7): m̃_t = m_t + M_t (m̃_{t+1} − m_t).
+    // Backward pass (A.7): m̃_t = m_t + M_t (m̃_{t+1} − m_t), frames `lo..=start` from
+    // m̃_start = `init` (returned from `lo` on).
     let mf = &run.mf;
-    let mut ms = mf.clone();
-    let mut diff = vec![0.0; n];
-    let mut corr = vec![0.0; n];
-    let mut tmp = Vec::new();
-    for t in (0..t_len - 1).rev() {
-        for c in 0..n {
-            diff[c] = ms[(t + 1) * n + c] - mf[t * n + c];
+    let backward = |lo: usize, start: usize, init: &[f64]| -> Vec<f64> {
+        let mut ms = mf[lo * n..(start + 1) * n].to_vec();
+        ms[(start - lo) * n..].copy_from_slice(init);
+        let (mut diff, mut corr, mut tmp) = (vec![0.0; n], vec![0.0; n], Vec::new());
+        for t in (lo..start).rev() {
+            let i = t - lo;
+            for c in 0..n {
+                diff[c] = ms[(i + 1) * n + c] - mf[t * n + c];
+            }
+            if t < run.dense.len() {
+                let v = &run.dense[t].m * nalgebra::DVector::from_column_slice(&diff);
+                corr.copy_from_slice(v.as_slice());
+            } else {
+                setup.gain(pool.get(run.sof[t]), &diff, &mut corr, &mut tmp);
+            }
+            for (o, cc) in ms[i * n..(i + 1) * n].iter_mut().zip(&corr) {
+                *o += cc;
+            }
         }
-        if t < run.dense.len() {
-            let v = &run.dense[t].m * nalgebra::DVector::from_column_slice(&diff);
-            corr.copy_from_slice(v.as_slice());
-        } else {
-            setup.gain(pool.get(run.sof[t]), &diff, &mut corr, &mut tmp);
-        }
-        for (o, cc) in ms[t * n..(t + 1) * n].iter_mut().zip(&corr) {
-            *o += cc;
-        }
-    }
+        ms
+    };
+    let last = &mf[(t_len - 1) * n..];
+    let ms = if rayon::current_num_threads() >= 2 && t_len >= 2 * MIN_FORWARD {
+        // Two halves in parallel: the second exact from the last frame, the first started
+        // FORWARD_BURN_IN frames after the split from the filter mean. The error at the split
+        // is carried into earlier frames by products of M_t (‖M_t‖₂ < 1), so the first half
+        // is kept when it agrees with the exact value at the split within the tolerance, and
+        // recomputed from that value otherwise.
+        let split = t_len / 2;
+        let from = (split + FORWARD_BURN_IN).min(t_len - 1);
+        let (first, second) = rayon::join(
+            || backward(0, from, &mf[from * n..(from + 1) * n]),
+            || backward(split, t_len - 1, last),
+        );
+        let exact = &second[..n];
+        let approx = &first[split * n..(split + 1) * n];
+        let scale = exact.iter().fold(1.0_f64, |a, v| a.max(v.abs()));
+        let ok = exact
+            .iter()
+            .zip(approx)
+            .all(|(x, y)| (x - y).abs() <= setup.tol * scale);
+        let mut ms = if ok { first } else { backward(0, split, exact) };
+        ms.truncate(split * n);
+        ms.extend_from_slice(&second);
+        ms
+    } else {
+        backward(0, t_len - 1, last)
+    };
     Ok(Some(LowRankMeans {
         y: ms,
         to_orig: &w.l * &u,
@@ -1017,8 +1048,8 @@ mod tests {
     }
 
     #[test]
-    fn parallel_forward_runs_equal_the_sequential_one() {
-        // Long enough for two forward runs (stitched after the second one's burn-in).
+    fn parallel_forward_and_backward_runs_equal_the_sequential_smoother() {
+        // Long enough for two forward and two backward runs (each stitched after a burn-in).
         let (x, model) = toy(2 * MIN_FORWARD + 300, 15, 6, 3e-5, 7);
         let pats = Patterns::new(&x, 15);
         let dense = smooth(&x, &model, &pats, false, 0.0).unwrap();

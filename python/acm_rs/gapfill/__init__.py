@@ -74,8 +74,10 @@ class FillResult:
 
 
 def _as_sequence(X: object) -> np.ndarray:
+    """``X`` as a float64 array of shape (n_frames, n_markers, 3), checked; not copied when it
+    already is one."""
     try:
-        arr = np.array(X, dtype=np.float64, copy=True)
+        arr = np.asarray(X, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"X must be a numeric array: {exc}") from None
     if arr.ndim != 3 or arr.shape[2] != 3:
@@ -169,10 +171,13 @@ def fill(
     arr = _as_sequence(X)
     n_frames, n_markers, _ = arr.shape
     # A marker is present only with all three coordinates (elementwise ors: 10x faster than
-    # ``any(axis=2)`` on a length-3 axis).
+    # ``any(axis=2)`` on a length-3 axis). The input is copied only if some marker is missing
+    # in part (then all its coordinates become NaN) or it is not C-contiguous.
     nan = np.isnan(arr)
     missing = nan[..., 0] | nan[..., 1] | nan[..., 2]
-    np.copyto(arr, np.nan, where=missing[..., None])
+    if np.count_nonzero(nan) != 3 * np.count_nonzero(missing):
+        arr = arr.copy()
+        np.copyto(arr, np.nan, where=missing[..., None])
     dead = missing.all(axis=0)
     if dead.all():
         raise ValueError("every marker is missing in every frame; nothing to fill from")
@@ -185,8 +190,8 @@ def fill(
     everything = bool(keep.all())
     # Boolean indexing copies (and costs more than the fill of a short recording): avoid it
     # when every marker is kept.
-    sub = arr.reshape(n_frames, -1) if everything else np.ascontiguousarray(arr[:, keep])
-    sub = sub.reshape(n_frames, -1)
+    sub = arr if everything else arr[:, keep]
+    sub = np.ascontiguousarray(sub.reshape(n_frames, -1))
     if opts["min_complete"] == 0:
         opts["min_complete"] = max(3 * int(keep.sum()), 10)
     filled_sub, std_sub, info = _native.gapfill_fill(
