@@ -133,7 +133,7 @@ def fill(
         (``"none"``; ``"residual"``: the observed-minus-smoothed residual at both borders
         carried into each gap; ``"auto"`` (default): residual, plus the cubic spline for gaps
         up to ``short_gap`` frames), ``short_gap`` (frames; ``None`` = calibrated on the data
-        by hiding probe gaps of 1-400 frames; the posterior ``std`` stays the smoother's
+        by hiding probe gaps of 1-270 frames; the posterior ``std`` stays the smoother's
         also where the spline fills), ``keep_original``
         (default True), ``memo_tol`` (1e-6), ``seed`` (calibration seed).
 
