@@ -38,8 +38,9 @@ DATA = Path("/work/shared/data/mocap")
 # The published settings expressed as options of method "lowdim", so that each fix can be
 # switched on alone. Differs from method "lowdim-paper" only in P₀ (training covariance of the
 # subspace coordinates instead of 1e12·I), which the first rows measure. `min_complete = 2`
-# keeps the published subspace from complete frames; with the default rule (0 = 3 × markers)
-# "lowdim" switches to impute–SVD–smooth on copies with fewer complete frames (85_02, seed 3).
+# keeps the published subspace from complete frames; with the default rule (0 = markers)
+# "lowdim" switches to impute–SVD–smooth on copies with fewer complete frames than markers (none
+# of the protocol copies of 85_02 and 135_02; with the earlier 3 × markers, 85_02 seed 3).
 PAPER = {
     "min_complete": 2,
     "gamma": 0.9975,
@@ -60,7 +61,7 @@ SINGLE = [
     ("border residuals", {"combine": "residual"}),
     ("border residuals + spline on short gaps (calibrated)", {"combine": "auto"}),
     (
-        "impute–SVD–smooth ×2 if < 3·markers complete frames",
+        "impute–SVD–smooth ×2 if < markers complete frames",
         {"subspace_iters": 2, "min_complete": 0},
     ),
     ("impute–SVD–smooth ×2 (forced)", {"subspace_iters": 2, "min_complete": 10**9}),
@@ -248,7 +249,7 @@ def main() -> None:
             f"\n## {rec}: {T} frames × {N} markers at {m.rate:g} Hz, seeds 0..{a.seeds - 1}, "
             f"{gap_s.size} removed marker-frames ({np.mean([r.mean() for r in removed]):.1%}), "
             f"complete frames per copy {min(complete)}–{max(complete)} "
-            f"(`min_complete` default {max(3 * N, 10)})\n"
+            f"(`min_complete` default {max(N, 10)})\n"
         )
 
         base = [

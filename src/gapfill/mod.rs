@@ -135,7 +135,8 @@ pub struct Options {
     pub paper_q: bool,
     /// Impute → SVD → smooth rounds when fewer than `min_complete` frames are complete.
     pub subspace_iters: usize,
-    /// Complete frames needed to learn the subspace from complete frames only.
+    /// Complete frames needed to learn the subspace from complete frames only (0: the number of
+    /// markers, `⌈D/3⌉`, at least 10).
     pub min_complete: usize,
     /// Border treatment / spline combination.
     pub combine: Combine,

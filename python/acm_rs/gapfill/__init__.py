@@ -129,7 +129,7 @@ def fill(
         ``em_iters`` (default 5, on at most 2000 frames), ``paper_q`` (published Q),
         ``subspace_iters`` (impute → SVD →
         smooth rounds when complete frames are scarce, default 2), ``min_complete`` (complete
-        frames needed to skip those rounds; 0 = max(3 × n_markers, 10)), ``combine``
+        frames needed to skip those rounds; 0 = max(n_markers, 10)), ``combine``
         (``"none"``; ``"residual"``: the observed-minus-smoothed residual at both borders
         carried into each gap; ``"auto"`` (default): residual, plus the cubic spline for gaps
         up to ``short_gap`` frames), ``short_gap`` (frames; ``None`` = calibrated on the data
@@ -193,7 +193,7 @@ def fill(
     sub = arr if everything else arr[:, keep]
     sub = np.ascontiguousarray(sub.reshape(n_frames, -1))
     if opts["min_complete"] == 0:
-        opts["min_complete"] = max(3 * int(keep.sum()), 10)
+        opts["min_complete"] = max(int(keep.sum()), 10)
     filled_sub, std_sub, info = _native.gapfill_fill(
         sub,
         method,
