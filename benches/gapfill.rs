@@ -5,10 +5,16 @@
 //!
 //! * `smooth/filter_rts_k24`: forward filter + RTS means (the final pass of `fill`);
 //! * `smooth/with_covariances_k24`: plus smoothed covariances and lag terms (one EM pass);
-//! * `em_update/k24`: the M-step from such a pass.
+//! * `em_update/k24`: the M-step from such a pass;
+//! * `lowrank/means_k24_r1e-4`: the same means with low-rank states in the small-gain regime
+//!   (`src/gapfill/lowrank.rs`, r = 1e-4 as with the published settings);
+//! * `fill/default`, `fill/paper`: the whole method (`lowdim` with its defaults: subspace, EM,
+//!   smoothing, spline calibration; `lowdim-paper`).
 
 use acm_rs::gapfill::combine::SplitMix;
+use acm_rs::gapfill::lowrank::smooth_means;
 use acm_rs::gapfill::smoother::{em_update, smooth, Model, Patterns};
+use acm_rs::gapfill::{fill, Options};
 use criterion::{criterion_group, criterion_main, Criterion};
 use nalgebra::{DMatrix, DVector};
 use std::hint::black_box;
@@ -78,6 +84,25 @@ fn bench_smoother(c: &mut Criterion) {
     c.bench_function("em_update/k24", |b| {
         b.iter(|| black_box(em_update(&x, &model, &pats, &sm, true).unwrap().1))
     });
+    let small = Model {
+        r: 1e-4,
+        ..model.clone()
+    };
+    c.bench_function("lowrank/means_k24_r1e-4", |b| {
+        b.iter(|| {
+            let lr = smooth_means(&x, &small, &pats, 1e-6).unwrap();
+            black_box(lr.expect("small-gain regime").states)
+        })
+    });
+    let mut g = c.benchmark_group("fill");
+    g.sample_size(10);
+    g.bench_function("default", |b| {
+        b.iter(|| black_box(fill(&x, T, d, &Options::default()).unwrap().info.dim))
+    });
+    g.bench_function("paper", |b| {
+        b.iter(|| black_box(fill(&x, T, d, &Options::paper()).unwrap().info.dim))
+    });
+    g.finish();
 }
 
 criterion_group!(benches, bench_smoother);
