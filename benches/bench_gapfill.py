@@ -28,8 +28,11 @@ from acm_rs.gapfill.io import read_c3d  # noqa: E402
 DEFAULT = Path(__file__).resolve().parents[2] / "shared/data/mocap/135_02.c3d"
 
 
-def best(f, repeats):
-    """(best, median) wall time of ``repeats`` calls and the last output."""
+def best(f, repeats, warmup=True):
+    """(best, median) wall time of ``repeats`` calls (after one untimed warm-up call: first
+    touches of memory, thread-pool start) and the last output."""
+    if warmup:
+        f()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -41,7 +44,7 @@ def best(f, repeats):
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--c3d", default=str(DEFAULT))
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--numpy-repeats", type=int, default=2)
     ap.add_argument("--long-frames", type=int, default=25_000)
     a = ap.parse_args()
@@ -51,7 +54,9 @@ def main() -> None:
     mask = np.isnan(G[:, :, 0])
     T, N, _ = X.shape
     print(f"{Path(a.c3d).name}: {T} frames x {N} markers, {mask.mean():.1%} marker-frames removed")
-    (t_np, _), f_np = best(lambda: lowdim_paper(G.reshape(T, -1)).reshape(T, N, 3), a.numpy_repeats)
+    (t_np, _), f_np = best(
+        lambda: lowdim_paper(G.reshape(T, -1)).reshape(T, N, 3), a.numpy_repeats, warmup=False
+    )
     (t_rs, m_rs), f_rs = best(lambda: fill(G, method="lowdim-paper"), a.repeats)
     (t_ld, m_ld), f_ld = best(lambda: fill(G), a.repeats)
     err = {
