@@ -368,6 +368,18 @@ mod tests {
     use nalgebra::DVector;
 
     #[test]
+    fn gemm_tn_matches_nalgebra() {
+        for (n, ma, mb) in [(73usize, 21usize, 40usize), (5, 1, 3), (1, 4, 4)] {
+            let a = DMatrix::from_fn(n, ma, |r, c| ((r * 5 + c * 3) % 7) as f64 - 3.0);
+            let b = DMatrix::from_fn(n, mb, |r, c| ((r * 11 + c) % 13) as f64 * 0.25);
+            let mut out = vec![f64::NAN; ma * mb];
+            gemm_tn(a.as_slice(), b.as_slice(), n, ma, mb, &mut out);
+            let reference = a.transpose() * &b;
+            assert!(close(&DMatrix::from_column_slice(ma, mb, &out), &reference, 1e-12));
+        }
+    }
+
+    #[test]
     fn spd_inverse_lower_matches_nalgebra() {
         for n in [1usize, 2, 5, 17, 41] {
             let a = DMatrix::from_fn(n, n, |r, c| ((r * 7 + c * 13) % 11) as f64 - 5.0);
