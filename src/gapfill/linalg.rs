@@ -375,7 +375,11 @@ mod tests {
             let mut out = vec![f64::NAN; ma * mb];
             gemm_tn(a.as_slice(), b.as_slice(), n, ma, mb, &mut out);
             let reference = a.transpose() * &b;
-            assert!(close(&DMatrix::from_column_slice(ma, mb, &out), &reference, 1e-12));
+            assert!(close(
+                &DMatrix::from_column_slice(ma, mb, &out),
+                &reference,
+                1e-12
+            ));
         }
     }
 
