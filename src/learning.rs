@@ -22,6 +22,9 @@ use crate::symmetry::SymmetryMap;
 use nalgebra::{DMatrix, DVector, Vector3};
 use rayon::prelude::*;
 
+mod lm;
+pub use lm::LmReport;
+
 /// What is optimised.
 #[derive(Debug, Clone)]
 pub enum Mode {
@@ -602,7 +605,7 @@ mod tests {
         ]
     }
 
-    fn problem(mode: Mode) -> (LearningProblem, Vec<f64>) {
+    pub(super) fn problem(mode: Mode) -> (LearningProblem, Vec<f64>) {
         let sk = branching();
         let cams = rig();
         let nb = sk.n_bones();

@@ -106,6 +106,16 @@ class NativeLearning:
     def fit_poses_lm(
         self, x: F64, lower: F64, upper: F64, max_iter: int
     ) -> tuple[F64, list[int]]: ...
+    def fit_full_lm(
+        self,
+        x: F64,
+        lower: F64,
+        upper: F64,
+        max_iter: int,
+        tol: float,
+        prior_centre: F64 | None = None,
+        prior_weight: F64 | None = None,
+    ) -> tuple[F64, int, float, float, str]: ...
     def residuals(self, x: F64) -> tuple[F64, F64, F64, F64]: ...
 
 def gapfill_fill(

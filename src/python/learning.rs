@@ -110,6 +110,52 @@ impl PyLearning {
         Ok((out(py, xo, &[n])?, it))
     }
 
+    /// Levenberg-Marquardt on the whole problem (Schur complement over the frames, box
+    /// bounds, optional Gaussian prior `w (x − c)` on the skeleton parameters) →
+    /// `(x, iterations, value before, value after, message)`, GIL released. Values include
+    /// the prior, divided by the number of labels.
+    #[pyo3(signature = (x, lower, upper, max_iter, tol, prior_centre=None, prior_weight=None))]
+    #[allow(clippy::too_many_arguments)]
+    fn fit_full_lm<'py>(
+        &self,
+        py: Python<'py>,
+        x: Arr<'py>,
+        lower: Arr<'py>,
+        upper: Arr<'py>,
+        max_iter: usize,
+        tol: f64,
+        prior_centre: Option<Arr<'py>>,
+        prior_weight: Option<Arr<'py>>,
+    ) -> PyResult<(Out<'py>, usize, f64, f64, String)> {
+        let n = self.inner.n_params();
+        let nsk = self.inner.n_skeleton_params();
+        let xs = view(&x, "x", &[Some(n)])?;
+        let lo = view(&lower, "lower", &[Some(n)])?;
+        let hi = view(&upper, "upper", &[Some(n)])?;
+        let prior = match (&prior_centre, &prior_weight) {
+            (Some(c), Some(w)) => Some((
+                view(c, "prior_centre", &[Some(nsk)])?,
+                view(w, "prior_weight", &[Some(nsk)])?,
+            )),
+            (None, None) => None,
+            _ => {
+                return Err(pyo3::exceptions::PyValueError::new_err(
+                    "give both prior_centre and prior_weight, or neither",
+                ))
+            }
+        };
+        let (xo, rep) = py
+            .detach(|| self.inner.fit_full_lm(xs, lo, hi, max_iter, tol, prior))
+            .map_err(to_py)?;
+        Ok((
+            out(py, xo, &[n])?,
+            rep.iterations,
+            rep.initial_value,
+            rep.final_value,
+            rep.message,
+        ))
+    }
+
     /// `x` → diagonal of the Gauss-Newton matrix (for preconditioning), with the GIL released.
     fn gauss_newton_diagonal<'py>(&self, py: Python<'py>, x: Arr<'py>) -> PyResult<Out<'py>> {
         let xs = view(&x, "x", &[Some(self.inner.n_params())])?;
