@@ -88,9 +88,9 @@ def test_configuration_missing(tmp_path):
 
 
 # -- model.npy ------------------------------------------------------------------------------------
-def test_model_matches_bundled_rat(dataset):
+def test_model_names_and_order(dataset):
     m = af.read_model(dataset.folder)
-    assert m.source == "template"
+    assert m.source == "model.npy"
     assert m.acm_joint_names == dataset.acm_joint_names
     assert m.acm_marker_names == dataset.acm_marker_names
     sk = m.skeleton
@@ -98,28 +98,78 @@ def test_model_matches_bundled_rat(dataset):
     assert [sk.marker_names[i] for i in m.marker_index] == dataset.acm_marker_names
     x = np.arange(sk.n_joints * 3, dtype=float).reshape(1, sk.n_joints, 3)
     assert m.to_acm_joints(x)[0, 0, 0] == x[0, sk.joint_index(dataset.acm_joint_names[0]), 0]
+    # limits, marker boxes, priors and pairs come from the bundled model by name
+    rat = acm_rs.models.rat()
+    for name in ("knee_left", "knee_right", "spine_003", "toe_left_002"):
+        np.testing.assert_array_equal(
+            sk.joint_limits[sk.bone_index(name)], rat.joint_limits[rat.bone_index(name)]
+        )
+    assert sk.state_map().n_state == 50
+    assert {c.bone for c in sk.bone_length_constraints} == {
+        c.bone for c in rat.bone_length_constraints
+    }
+
+
+def test_model_rest_pose_is_the_authors(dataset, tmp_path):
+    """As the authors' forward model: every bone along +z at rest with the identity frame,
+    except the girdles, whose frames come from skeleton_coords (anatomy.get_skeleton_coords0);
+    root markers get no offset."""
+    d = np.load(dataset.folder / "model.npy", allow_pickle=True).item()
+    jn = [n[len("joint_") :] for n in d["joint_order"]]
+    # a girdle frame that is not the bundled model's: a turn about the bone's own axis
+    edges = d["skeleton_edges"]
+    hip = int(np.flatnonzero(edges[:, 1] == jn.index("hip_left"))[0])
+    c = d["skeleton_coords"][hip].copy()
+    d["skeleton_coords"][hip] = c @ acm_rs.rodrigues(np.array([0.0, 0.0, 0.3]))
+    np.save(tmp_path / "model.npy", d, allow_pickle=True)
+    m = af.read_model(tmp_path)
+    sk = m.skeleton
+    frames = sk.rest_frames
+    girdles = {"hip_left", "hip_right", "shoulder_left", "shoulder_right"}
+    for b, name in enumerate(sk.bone_names):
+        if name not in girdles:
+            np.testing.assert_allclose(frames[b], np.eye(3), atol=1e-12)
+    # hips: the file's frame through float16 Euler angles (within float16 rounding)
+    np.testing.assert_allclose(
+        frames[sk.bone_index("hip_left")], d["skeleton_coords"][hip], atol=2e-3
+    )
+    assert not np.allclose(frames[sk.bone_index("hip_left")], c, atol=1e-2)
+    # root markers: fixed at the root
+    root_markers = [k for k, j in enumerate(sk.marker_joints) if sk.parents[j] < 0]
+    assert root_markers and np.all(sk.marker_bounds[root_markers] == 0.0)
+    # the explicit frames survive a save/load round trip
+    sk.save(tmp_path / "sk.toml")
+    back = acm_rs.Skeleton.load(tmp_path / "sk.toml")
+    np.testing.assert_allclose(back.rest_frames, frames, atol=1e-12)
+    t, r = np.array([1.0, 2.0, 3.0]), np.random.default_rng(0).normal(size=(sk.n_bones, 3))
+    np.testing.assert_allclose(back.forward(t, r)[1], sk.forward(t, r)[1], atol=1e-9)
 
 
 def test_model_other_topology_builds_skeleton(dataset, tmp_path):
-    """A model that differs from the template (a marker removed) is built from the file."""
+    """A model without one marker is still read (names, pairs and limits by name)."""
     d = np.load(dataset.folder / "model.npy", allow_pickle=True).item()
     drop = d["joint_marker_order"].index("marker_side_left_start")
     d["joint_marker_order"] = [n for i, n in enumerate(d["joint_marker_order"]) if i != drop]
     d["joint_marker_index"] = np.delete(d["joint_marker_index"], drop)
     np.save(tmp_path / "model.npy", d, allow_pickle=True)
     m = af.read_model(tmp_path)
-    assert m.source == "model.npy"
     sk = m.skeleton
     assert sk.n_joints == 29 and sk.n_markers == 42 and sk.units == "cm"
-    np.testing.assert_allclose(sk.bone_lengths, 1.0, atol=1e-9)  # unit bones from the file
     rat = acm_rs.models.rat()
     b = sk.bone_index("knee_left")
     np.testing.assert_array_equal(sk.joint_limits[b], rat.joint_limits[rat.bone_index("knee_left")])
     assert "side_right" not in dict(sk.symmetry["markers"]).values()
     assert sk.state_map().n_state == 50
-    # rest pose of the built skeleton equals the file's vertices (in ACM order)
-    rest, _ = sk.rest_pose()
-    np.testing.assert_allclose(m.to_acm_joints(rest), d["skeleton_vertices"], atol=1e-9)
+
+
+def test_model_links_other_than_alg1_warn(dataset, tmp_path):
+    d = np.load(dataset.folder / "model.npy", allow_pickle=True).item()
+    links = np.array(d["skeleton_vertices_links"], bool)
+    links[3:] = np.eye(len(links), dtype=bool)[3:]  # each rotation moves only its own bone
+    d["skeleton_vertices_links"] = links
+    np.save(tmp_path / "model.npy", d, allow_pickle=True)
+    with pytest.warns(UserWarning, match="differs from Alg. 1"):
+        af.read_model(tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -151,7 +201,7 @@ def test_labels_dlc(dataset):
     lab = af.read_labels_dlc(path, m.acm_marker_names, pcutoff=cfg.pcutoff)
     assert np.all(np.isnan(lab.points[raw.likelihood <= 0.9]))
     assert np.all(np.isfinite(lab.points[raw.likelihood > 0.9]))
-    ours = lab.reorder(m.skeleton.marker_names)
+    ours = lab.reorder(dataset.skeleton.marker_names)
     truth = dataset.skeleton.project(dataset.rig, dataset.t, dataset.r)
     err = np.linalg.norm(ours.points - truth, axis=-1)
     ok = np.isfinite(err)
@@ -170,9 +220,8 @@ def test_labels_dlc_path_errors(dataset, tmp_path):
 
 
 def test_labels_manual(dataset):
-    m = af.read_model(dataset.folder)
     lab = af.read_labels_manual(
-        dataset.folder / "labels_manual.npz", m.skeleton.marker_names, n_cams=4
+        dataset.folder / "labels_manual.npz", dataset.skeleton.marker_names, n_cams=4
     )
     np.testing.assert_array_equal(lab.frames, dataset.manual_frames)
     assert lab.points.shape == (4, len(dataset.manual_frames), 43, 2) and lab.likelihood is None

@@ -20,6 +20,7 @@ import ast
 import difflib
 import math
 import operator
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from . import acm_model
 from ._io import atomic_write
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -477,15 +479,13 @@ def read_model(
 ) -> AcmModel:
     """Read an ACM ``model.npy`` (a trusted pickle) into an :class:`AcmModel`.
 
-    The file carries the topology and a rest pose with unit bone lengths, no real lengths or
-    marker offsets (those are learned). So:
-
-    * if its joints, tree, markers and attachments equal those of ``template`` (default: the
-      bundled model ``species``), the template is used as is (its lengths as a starting point,
-      marker rest positions, joint limits of Supp. Table 1, symmetry and bone-length priors);
-    * otherwise a skeleton is built from the file's rest pose (unit bones; markers at their
-      joint plus the legacy ``joint_marker_vectors`` when present), taking joint limits,
-      bone-length priors and left/right pairs from the template wherever the names match.
+    The skeleton is built as the authors' tool builds it (:mod:`acm_rs.acm_model`): tree,
+    names and marker attachments from the file; every bone straight along +z at rest except
+    the girdle bones, whose rest frames come from the file's ``skeleton_coords``; no offset
+    for markers on the root. The file carries no lengths or offsets (they are learned), so
+    the starting lengths and offsets, joint limits (Supp. Table 1), marker boxes (sec. 6),
+    bone-length priors (Supp. Table 2) and left/right pairs are taken by name from
+    ``template`` (default: the bundled model ``species``), offsets clipped to their boxes.
 
     Parameters
     ----------
@@ -501,6 +501,11 @@ def read_model(
     ValueError
         Not the expected dict, bad shapes, names without the ``joint_``/``marker_`` prefixes,
         edges that do not form a tree, marker indices out of range.
+
+    Warns
+    -----
+    UserWarning
+        When ``skeleton_vertices_links`` follows another rule than Alg. 1.
     """
     from . import models
     from .skeleton import Skeleton
@@ -525,32 +530,22 @@ def read_model(
     roots = np.flatnonzero(parent == -1)
     if roots.size != 1:
         raise ValueError(f"{p}: skeleton_edges must form one tree; roots: {[jn[r] for r in roots]}")
-    marker_joint = {mn[k]: jn[mji[k]] for k in range(n_m)}
-    parent_name = {jn[j]: (jn[parent[j]] if parent[j] >= 0 else "") for j in range(n_j)}
-
     if template is None:
         if species not in models.available():
             raise ValueError(f"species must be one of {models.available()}, got {species!r}")
         template = models.load(species)
-    t_parent = {
-        n: (template.joint_names[q] if q >= 0 else "")
-        for n, q in zip(template.joint_names, template.parents, strict=True)
-    }
-    t_marker_joint = {
-        n: template.joint_names[j]
-        for n, j in zip(template.marker_names, template.marker_joints, strict=True)
-    }
-    if t_parent == parent_name and t_marker_joint == marker_joint:
-        sk, source = template, "template"
-    else:
-        sk = _skeleton_from_model(d, p, jn, mn, parent, verts, mji, template, Skeleton)
-        source = "model.npy"
+    coords = None
+    if "skeleton_coords" in d:
+        coords = _array(d, "skeleton_coords", p, (n_j - 1, 3, 3))
+    links = d.get("skeleton_vertices_links")
+    acm_model.check_links(links, parent, edges, [jn[e] for _, e in edges])
+    sk = _skeleton_from_model(p, jn, mn, parent, edges, verts, coords, mji, template, Skeleton)
     joint_index = np.array([sk.joint_index(n) for n in jn], dtype=np.int64)
     marker_index = np.array([sk.marker_index(n) for n in mn], dtype=np.int64)
-    return AcmModel(sk, jn, mn, joint_index, marker_index, source)
+    return AcmModel(sk, jn, mn, joint_index, marker_index, "model.npy")
 
 
-def _skeleton_from_model(d, p, jn, mn, parent, verts, mji, template, skeleton_cls):
+def _skeleton_from_model(p, jn, mn, parent, edges, verts, coords, mji, template, skeleton_cls):
     n_j = len(jn)
     # root-first (breadth-first) order, children in file order
     order = [int(np.flatnonzero(parent == -1)[0])]
@@ -561,14 +556,45 @@ def _skeleton_from_model(d, p, jn, mn, parent, verts, mji, template, skeleton_cl
     pos = {j: i for i, j in enumerate(order)}
     names = [jn[j] for j in order]
     parents = [pos[parent[j]] if parent[j] >= 0 else -1 for j in order]
-    rest = verts[order]
-    offs = np.zeros((len(mn), 3))
-    if "joint_marker_vectors" in d:
-        try:
-            offs = _array(d, "joint_marker_vectors", p, (len(mn), 3))
-        except ValueError:
-            offs = np.zeros((len(mn), 3))
-    marker_rest = verts[mji] + offs
+    # rest frames: identity, girdles from skeleton_coords (anatomy.get_skeleton_coords0)
+    file_bone_of_end = {int(e): b for b, (_, e) in enumerate(edges)}
+    girdles = {}
+    if coords is None:
+        warnings.warn(
+            f"{p}: no skeleton_coords; the girdle bones get the template's rest directions",
+            stacklevel=3,
+        )
+    else:
+        girdles = acm_model.girdle_frames(jn, edges, verts, coords)
+    t_len = dict(zip(template.bone_names, template.bone_lengths, strict=True))
+    t_frames = dict(zip(template.bone_names, template.rest_frames, strict=True))
+    frames = np.tile(np.eye(3), (n_j - 1, 1, 1))
+    lengths = np.ones(n_j - 1)
+    for b, j in enumerate(order[1:]):  # bone b of ours ends at joint order[b + 1]
+        fb = file_bone_of_end[j]
+        if fb in girdles:
+            frames[b] = girdles[fb]
+        elif coords is None and jn[j] in t_frames and jn[j] in acm_model.GIRDLE_JOINTS:
+            frames[b] = t_frames[jn[j]]
+        lengths[b] = t_len.get(jn[j], 1.0)
+    rest = np.zeros((n_j, 3))
+    for b in range(n_j - 1):
+        rest[b + 1] = rest[parents[b + 1]] + frames[b][:, 2] * lengths[b]
+    # marker offsets: the template's (by name) clipped to the boxes; none on the root
+    t_off = dict(zip(template.marker_names, template.marker_offsets, strict=True))
+    t_box = dict(zip(template.marker_names, template.marker_bounds, strict=True))
+    root = order[0]
+    boxes = {}
+    marker_rest = np.zeros((len(mn), 3))
+    for k, name in enumerate(mn):
+        box = np.array(t_box.get(name, np.tile([-np.inf, np.inf], (3, 1))), dtype=float)
+        if mji[k] == root:
+            box = np.zeros((3, 2))  # the authors' forward model gives root markers no offset
+        boxes[name] = box
+        v = np.clip(t_off.get(name, np.zeros(3)), box[:, 0], box[:, 1])
+        j = mji[k]
+        frame = np.eye(3) if j == root else frames[pos[j] - 1]
+        marker_rest[k] = rest[pos[j]] + frame @ v
     bone_names = set(names[1:])
     limits = {}
     for b, name in enumerate(template.bone_names):
@@ -589,9 +615,11 @@ def _skeleton_from_model(d, p, jn, mn, parent, verts, mji, template, skeleton_cl
         marker_rest,
         joint_limits=limits,
         symmetry=sym,
+        marker_bounds=boxes,
         bone_length_constraints=constraints,
         name=p.parent.name or "acm_model",
         units="cm",
+        rest_frames=frames,
     )
 
 

@@ -128,6 +128,7 @@ class Skeleton:
         bone_length_constraints: Sequence[BoneLengthConstraint] = (),
         name: str = "skeleton",
         units: str = "",
+        explicit_frames: bool = False,
     ) -> None:
         self._joint_names = _names(joint_names, "joint")
         self._marker_names = _names(marker_names, "marker")
@@ -142,6 +143,8 @@ class Skeleton:
         self._constraints = tuple(bone_length_constraints)
         self.name = name
         self.units = units
+        # rest frames given explicitly (not derivable from `up`): saved with the skeleton
+        self._explicit_frames = bool(explicit_frames)
         for c in self._constraints:
             self.bone_index(c.bone)
         for arr in (self._parents, self._marker_joints, self._joint_limits, self._marker_bounds):
@@ -165,6 +168,7 @@ class Skeleton:
         up: Sequence[float] = (0.0, 1.0, 0.0),
         name: str = "skeleton",
         units: str = "",
+        rest_frames: np.ndarray | None = None,
     ) -> Skeleton:
         """Build a skeleton from joint and marker positions in a rest pose (all ``r = 0``).
 
@@ -197,6 +201,10 @@ class Skeleton:
             x = the animal's right, y = dorsal, z = caudal, so the default is ``(0, 1, 0)``.
         name, units : str
             Model name and length unit.
+        rest_frames : array_like, shape (n_bones, 3, 3), optional
+            Rest orientation of every bone (columns = its x, y, z axes in the world; z along
+            the bone) instead of the construction from ``up`` -- e.g. the authors' girdle
+            frames read from an ACM ``model.npy``. Saved with the skeleton.
 
         Raises
         ------
@@ -223,7 +231,11 @@ class Skeleton:
         upv = as_float_array(up, "up", (3,)).ravel()
         if np.linalg.norm(upv) == 0:
             raise ValueError("up must be a non-zero vector")
-        native = _native.NativeSkeleton.from_rest_pose(par, rj, mj, mr, upv)
+        frames = None
+        if rest_frames is not None:
+            nb = len(jn) - 1
+            frames = as_float_array(rest_frames, "rest_frames", (nb, 3, 3)).reshape(nb, 3, 3)
+        native = _native.NativeSkeleton.from_rest_pose(par, rj, mj, mr, upv, frames)
         n_bones = int(native.n_bones)
         bones = native.bones
         bone_names = [jn[e] for e in bones[:, 1]]
@@ -245,6 +257,7 @@ class Skeleton:
             bone_length_constraints=bone_length_constraints,
             name=name,
             units=units,
+            explicit_frames=frames is not None,
         )
 
     def with_parameters(
@@ -281,6 +294,7 @@ class Skeleton:
             bone_length_constraints=self._constraints,
             name=self.name,
             units=self.units,
+            explicit_frames=self._explicit_frames,
         )
 
     # -- structure --------------------------------------------------------------------------
@@ -574,15 +588,18 @@ class Skeleton:
             "joints": [],
             "markers": [],
         }
+        frames = self.rest_frames
+        bone_of_end = {int(e): b for b, e in enumerate(self.bones[:, 1])}
         for j, n in enumerate(self._joint_names):
             parent = self._parents[j]
-            doc["joints"].append(
-                {
-                    "name": n,
-                    "parent": "" if parent < 0 else self._joint_names[parent],
-                    "position": [_clean(v) for v in rest_j[j]],
-                }
-            )
+            entry = {
+                "name": n,
+                "parent": "" if parent < 0 else self._joint_names[parent],
+                "position": [_clean(v) for v in rest_j[j]],
+            }
+            if self._explicit_frames and j in bone_of_end:
+                entry["frame"] = [[_clean(v) for v in row] for row in frames[bone_of_end[j]]]
+            doc["joints"].append(entry)
         for k, n in enumerate(self._marker_names):
             entry = {
                 "name": n,
@@ -639,6 +656,7 @@ class Skeleton:
             rest_m = np.array([m["position"] for m in markers], dtype=np.float64).reshape(-1, 3)
         except KeyError as exc:
             raise ValueError(f"{source}: missing key {exc}") from None
+        rest_frames = _frames_from_doc(joints, parents, source)
         deg = doc.get("angle_units", "deg")
         if deg not in ("deg", "rad"):
             raise ValueError(f"{source}: angle_units must be 'deg' or 'rad', got {deg!r}")
@@ -667,6 +685,7 @@ class Skeleton:
             up=doc.get("up", (0.0, 1.0, 0.0)),
             name=doc.get("name", "skeleton"),
             units=doc.get("units", ""),
+            rest_frames=rest_frames,
         )
 
     @classmethod
@@ -743,6 +762,27 @@ class SymmetryMap:
 
 
 # -- helpers ---------------------------------------------------------------------------------
+def _frames_from_doc(
+    joints: Sequence[Mapping], parents: Sequence[int], source: str
+) -> np.ndarray | None:
+    """Explicit rest frames (``frame`` of every non-root joint) in bone order, or None."""
+    has = [("frame" in j) for j, p in zip(joints, parents, strict=True) if p >= 0]
+    if not any(has):
+        return None
+    if not all(has):
+        missing = [j["name"] for j, p in zip(joints, parents, strict=True) if p >= 0]
+        missing = [n for n, h in zip(missing, has, strict=True) if not h]
+        raise ValueError(
+            f"{source}: some joints give a rest 'frame' and others do not (missing: "
+            f"{', '.join(missing[:5])}); give one for every non-root joint or none"
+        )
+    # bone b ends at the b-th non-root joint in joint order
+    out = np.array([j["frame"] for j, p in zip(joints, parents, strict=True) if p >= 0], float)
+    if out.shape[1:] != (3, 3):
+        raise ValueError(f"{source}: every joint 'frame' must be a 3 x 3 matrix (rows)")
+    return out
+
+
 def _clean(v: float) -> float:
     v = float(v)
     if math.isfinite(v):
