@@ -19,6 +19,7 @@ that initialises the tracker's ``mu_0``.
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -394,8 +395,65 @@ class LearnedSkeleton:
         """(n_cams,) mean reprojection error per camera (px)."""
         return np.nanmean(self.errors.reshape(len(self.rig), -1), axis=1)
 
+    def diagnostics(self, outlier_sigma: float = 5.0) -> dict:
+        """What a user should look at before trusting the learned skeleton.
+
+        Returns
+        -------
+        dict
+            ``bones_on_bounds``: ``[(bone, length, bound)]`` bones that ended on a bound of
+            their length (an anatomical prior, or the [0.2, 5] x generic box of free bones;
+            right-side copies omitted); ``offsets_on_bounds``: ``[(marker, axis, value)]``
+            offsets pushed against a box wall (sec. 6) that is not a fixed component;
+            ``off_proportions``: ``[(bone, length, expected)]`` free bones more than 50 %
+            away from the generic proportions at the fitted size (a joint that slid along a
+            weakly determined chain); ``noise_px``: the label noise SD estimated from the
+            median error (2D Gaussian); ``outliers``: ``[(camera, frame, marker, error_px)]``
+            labels above ``outlier_sigma`` x that noise, worst first.
+        """
+        sk = self.skeleton
+        out: dict = {"bones_on_bounds": [], "offsets_on_bounds": [], "off_proportions": []}
+        right = {r for _, r in sk.symmetry.get("joints", [])}
+        bounds = self.info.get("length_bounds")
+        if bounds is not None:
+            for b, (name, length) in enumerate(zip(sk.bone_names, sk.bone_lengths, strict=True)):
+                lo, hi = bounds[b]
+                if name in right or not lo < hi:
+                    continue
+                for bound in (lo, hi):
+                    if abs(length - bound) <= 1e-6 * (1.0 + abs(bound)):
+                        out["bones_on_bounds"].append((name, float(length), float(bound)))
+        right_m = {r for _, r in sk.symmetry.get("markers", [])}
+        mb, off = sk.marker_bounds, sk.marker_offsets
+        for k, name in enumerate(sk.marker_names):
+            if name in right_m:
+                continue
+            for a in range(3):
+                lo, hi = mb[k, a]
+                if not lo < hi:
+                    continue
+                for bound in (lo, hi):
+                    if np.isfinite(bound) and abs(off[k, a] - bound) <= 1e-6:
+                        out["offsets_on_bounds"].append((name, "xyz"[a], float(off[k, a])))
+        for name, expected in self.info.get("length_prior", {}).items():
+            length = float(sk.bone_lengths[sk.bone_index(name)])
+            if abs(np.log(length / expected)) > np.log(1.5):
+                out["off_proportions"].append((name, length, expected))
+        err = self.errors
+        ok = np.isfinite(err)
+        sigma = float(np.median(err[ok]) / np.sqrt(2.0 * np.log(2.0))) if ok.any() else np.nan
+        out["noise_px"] = sigma
+        idx = np.argwhere(ok & (err > outlier_sigma * sigma))
+        order = np.argsort(-err[tuple(idx.T)]) if idx.size else np.array([], int)
+        names = self.rig.names
+        out["outliers"] = [
+            (names[c] or str(c), int(f), sk.marker_names[m], float(err[c, f, m]))
+            for c, f, m in idx[order]
+        ]
+        return out
+
     def summary(self) -> str:
-        """A short text report."""
+        """A short text report, with the :meth:`diagnostics` that need attention."""
         lines = [
             f"learned {self.skeleton.name}: {self.t.shape[0]} frames, "
             f"{int(np.isfinite(self.errors).sum())} labels, RMS reprojection error "
@@ -416,6 +474,37 @@ class LearnedSkeleton:
         for stage, st in self.info.get("stages", {}).items():
             lines.append(
                 f"  {stage}: {st['nit']} iterations, {st['seconds']:.1f} s, {st['message']}"
+            )
+        for bone, length, lo, hi in self.info.get("prior_conflicts", []):
+            lines.append(
+                f"  note: the generic {bone} ({length:.3g} {self.skeleton.units}) lies outside "
+                f"its prior [{lo:.3g}, {hi:.3g}] at this body weight; it started at the prior mean"
+            )
+        d = self.diagnostics()
+        if d["bones_on_bounds"]:
+            lines.append(
+                "  WARNING bones on a bound of their length (check body_weight, or the labels "
+                "of the markers around them): "
+                + ", ".join(f"{b} {v:.3g}" for b, v, _ in d["bones_on_bounds"])
+            )
+        if d["offsets_on_bounds"]:
+            lines.append(
+                "  marker offsets against a wall of their box: "
+                + ", ".join(f"{m}.{a} = {v:.3g}" for m, a, v in d["offsets_on_bounds"])
+            )
+        if d["off_proportions"]:
+            lines.append(
+                "  WARNING bones far from the generic proportions (a joint may have slid along "
+                "a weakly determined chain; more labelled frames with that part bent help): "
+                + ", ".join(f"{b} {v:.3g} (expected ~{e:.3g})" for b, v, e in d["off_proportions"])
+            )
+        if d["outliers"]:
+            worst = ", ".join(
+                f"{m} in {c} frame {f} ({e:.1f} px)" for c, f, m, e in d["outliers"][:5]
+            )
+            lines.append(
+                f"  WARNING {len(d['outliers'])} labels above 5 x the label noise "
+                f"(~{d['noise_px']:.2f} px): {worst}"
             )
         return "\n".join(lines)
 
@@ -491,7 +580,10 @@ def learn_skeleton(
     sigma_factor: float = 10.0,
     options: dict | None = None,
     init: tuple[np.ndarray, np.ndarray] | None = None,
-    rounds: int = 4,
+    rounds: int = 0,
+    lm_iter: int = 100,
+    scale_to_labels: bool = True,
+    length_prior_sd: float | None = 0.15,
 ) -> LearnedSkeleton:
     """Learn bone lengths, marker offsets and per-frame poses from labelled frames (eq. 12).
 
@@ -525,8 +617,21 @@ def learn_skeleton(
         Initial poses ``(n_frames, 3)``, ``(n_frames, n_bones, 3)``; default
         :func:`initial_poses`.
     rounds : int
-        Maximum number of L-BFGS-B runs of the joint problem, each re-preconditioned at the
-        previous result (a run ends at a relative reduction of ``ftol``).
+        Maximum number of L-BFGS-B runs of the joint problem (the authors' optimiser), each
+        re-preconditioned at the previous result, before Levenberg-Marquardt. Default 0:
+        L-BFGS-B stalls in this problem's flat valleys (``docs/models.md``).
+    lm_iter : int
+        Maximum number of Levenberg-Marquardt steps on the whole problem (exact Gauss-Newton
+        steps, frames eliminated by the Schur complement, in Rust); 0 skips it.
+    scale_to_labels : bool
+        Scale the generic model to the size of the animal in the labels first (the scale
+        with the smallest per-frame reprojection error, ``info["size_scale"]``).
+    length_prior_sd : float or None
+        Relative SD of a Gaussian prior on the lengths of the bones without an anatomical
+        prior (spine, tail, girdles, digits), centred on the (scaled) generic model and
+        weighted as if the labels had 1 px noise. Along a chain whose markers may slide
+        along their bones, the data hardly tell where a joint sits; the prior decides there
+        and nowhere else. None: no prior (the authors' tool has none).
 
     Returns
     -------
@@ -558,6 +663,34 @@ def learn_skeleton(
     lower, upper = np.ascontiguousarray(lim[..., 0]), np.ascontiguousarray(lim[..., 1])
     bp, mp = _pairs(skeleton, symmetric)
     info: dict = {"stages": {}}
+
+    # (0) size: the generic model scaled to the animal in the labels (a 72 g and a 350 g rat
+    # differ by ~1.7x in every length; starting from the wrong size ends in a wrong minimum)
+    t0 = time.perf_counter()
+    generic = skeleton
+    size = 1.0
+    # bones with an anatomical prior start at its mean (the authors' start), the rest of
+    # the model is scaled to the labels
+    info["prior_conflicts"] = check_body_weight(skeleton, body_weight, sigma_factor)
+    prior_lo_hi = skeleton.bone_length_bounds(body_weight, sigma_factor)
+    anatomical = np.isfinite(prior_lo_hi[:, 1])
+    fixed_lengths = np.where(anatomical, prior_lo_hi.mean(axis=1), np.nan)
+    if anatomical.any() and init is None:
+        skeleton = skeleton.with_parameters(
+            np.where(anatomical, fixed_lengths, skeleton.bone_lengths)
+        )
+    if scale_to_labels and init is None:
+        size = _size_from_labels(
+            rig, skeleton, lab_fcm, norm, length_scale, lower, upper, anatomical
+        )
+        if abs(np.log(size)) > 0.05:
+            skeleton = skeleton.with_parameters(
+                np.where(anatomical, skeleton.bone_lengths, skeleton.bone_lengths * size),
+                skeleton.marker_offsets * size,
+            )
+    info["size_scale"] = size
+    info["stages"]["size"] = {"nit": 0, "seconds": time.perf_counter() - t0,
+                              "message": f"generic model scaled by {size:.3f}"}  # fmt: skip
 
     # (1) initial poses
     t0 = time.perf_counter()
@@ -613,20 +746,72 @@ def learn_skeleton(
     t0 = time.perf_counter()
     hist2: list[float] = []
     nit = 0
+    x_fit = x0
     # L-BFGS-B stops at a relative reduction of ftol; restarting with the preconditioner
     # recomputed at the new point continues while a round still gains more than 1e-5.
-    for _round in range(max(1, int(rounds))):
-        res2, h = _minimize(full, x0, bounds, scale, opts, progress, "skeleton")
+    for _round in range(int(rounds)):
+        res2, h = _minimize(full, x_fit, bounds, scale, opts, progress, "skeleton")
         hist2 += h
         nit += int(res2.nit)
-        f_start = full.value_and_grad(x0)[0] * scale
-        x0 = res2.x
+        f_start = full.value_and_grad(x_fit)[0] * scale
+        x_fit = res2.x
+        info["stages"]["skeleton"] = _stage(res2, t0) | {"nit": nit, "rounds": _round + 1}
         if f_start - res2.fun <= 1e-5 * max(abs(res2.fun), 1e-12):
             break
-    info["stages"]["skeleton"] = _stage(res2, t0) | {"nit": nit, "rounds": _round + 1}
     info["history"] = {"poses": hist1, "skeleton": hist2}
+    info["length_bounds"] = np.stack([l_lo, l_hi], axis=1)
+    if lm_iter > 0:
+        # (4) Levenberg-Marquardt on everything (Schur complement in Rust): crosses the flat
+        # valleys where L-BFGS-B stalls (a joint sliding along a chain with its markers)
+        t0 = time.perf_counter()
+        lo_x, hi_x = _bound_arrays(bounds)
+        # the prior's centre: the generic proportions, then rescaled to the fitted size
+        prior = _length_prior(
+            skeleton, rb, skeleton.bone_lengths[rb], body_weight, sigma_factor,
+            length_prior_sd, norm, length_scale, full.n_skeleton_params,
+        )  # fmt: skip
 
-    projected, lengths, offsets, poses = full.residuals(res2.x)
+        def lm(x):
+            return full.fit_full_lm(x, lo_x, hi_x, int(lm_iter), 1e-10, *prior)
+
+        x_fit, n_lm, f0, f1, msg = lm(x_fit)
+        if prior:
+            prior = _length_prior(
+                skeleton, rb, x_fit[: rb.size] * length_scale, body_weight, sigma_factor,
+                length_prior_sd, norm, length_scale, full.n_skeleton_params,
+            )  # fmt: skip
+            x_fit, n2, _, f1, msg = lm(x_fit)
+            n_lm += n2
+            centre, weight = prior
+            info["length_prior"] = {
+                skeleton.bone_names[b]: float(centre[i] * length_scale)
+                for i, b in enumerate(rb)
+                if weight[i] > 0
+            }
+        # frames left with a limb folded the wrong way: multi-start their poses with the
+        # learned skeleton, then Levenberg-Marquardt again while that lowers the objective
+        nsk = full.n_skeleton_params
+        n_restarted = 0
+        for attempt in range(3):
+            _, lengths, offsets, _ = full.residuals(x_fit)
+            z_fit = x_fit[nsk:].reshape(n_frames, -1)
+            z_new, _, n_bad = _fit_frames(
+                skeleton, params, lab_fcm, lower, upper, norm, length_scale, z_fit, lo_z, hi_z,
+                lengths, offsets, seed=attempt + 1,
+            )  # fmt: skip
+            x_new = np.concatenate([x_fit[:nsk], z_new.ravel()])
+            if n_bad == 0 or full.value_and_grad(x_new)[0] >= full.value_and_grad(x_fit)[0]:
+                break
+            n_restarted += n_bad
+            x_fit, n2, _, f1, msg = lm(x_new)
+            n_lm += n2
+        info["stages"]["lm"] = {
+            "success": True, "nit": n_lm, "seconds": time.perf_counter() - t0,
+            "message": msg, "fun": f1 * scale, "fun_start": f0 * scale,
+            "frames_restarted": n_restarted,
+        }  # fmt: skip
+
+    projected, lengths, offsets, poses = full.residuals(x_fit)
     learned = skeleton.with_parameters(lengths, offsets)
     projected = projected.transpose(1, 0, 2, 3)
     errors = np.linalg.norm(projected - lab, axis=-1)
@@ -638,7 +823,7 @@ def learn_skeleton(
         projected=projected,
         errors=errors,
         rig=rig,
-        generic=skeleton,
+        generic=generic,
         info=info,
     )
 
@@ -648,6 +833,130 @@ def _frame_rms(problem: _native.NativeLearning, x: np.ndarray, lab_fcm: np.ndarr
     err = np.sum((projected - lab_fcm) ** 2, axis=-1)
     with np.errstate(invalid="ignore"):
         return np.sqrt(np.nanmean(np.where(np.isfinite(err), err, np.nan), axis=(1, 2)))
+
+
+def check_body_weight(
+    skeleton: Skeleton, body_weight: float | None, sigma_factor: float = 10.0
+) -> list[tuple[str, float, float, float]]:
+    """Bones of ``skeleton`` whose length lies outside its anatomical prior at ``body_weight``.
+
+    Returns ``[(bone, length, lower, upper)]`` (lengths in the skeleton's units), and warns
+    when the list is not empty: learning then starts those bones at their prior means.
+
+    Raises
+    ------
+    ValueError
+        A body weight that is not a positive number of grams (e.g. 0.35: kilograms).
+    """
+    if body_weight is None:
+        return []
+    w = float(body_weight)
+    if not np.isfinite(w) or w <= 0:
+        raise ValueError(f"body_weight must be a positive number of grams, got {body_weight}")
+    if w < 1.0 and any(c.slope is not None for c in skeleton.bone_length_constraints):
+        raise ValueError(
+            f"body_weight = {body_weight} g is not a rodent's weight: give grams "
+            f"(e.g. {w * 1000:g} for {w:g} kg)"
+        )
+    bounds = skeleton.bone_length_bounds(w, sigma_factor)
+    out = []
+    for b, (name, length) in enumerate(
+        zip(skeleton.bone_names, skeleton.bone_lengths, strict=True)
+    ):
+        lo, hi = bounds[b]
+        tol = 1e-9 * max(hi, 1.0) if np.isfinite(hi) else 0.0
+        if np.isfinite(hi) and not lo - tol <= length <= hi + tol:
+            out.append((name, float(length), float(lo), float(hi)))
+    if out:
+        warnings.warn(
+            f"body weight {w:g} g puts {len(out)} bones of the generic model {skeleton.name!r} "
+            f"outside their priors (e.g. {out[0][0]} {out[0][1]:.3g} not in "
+            f"[{out[0][2]:.3g}, {out[0][3]:.3g}] {skeleton.units}); learning starts them at "
+            "their prior means. If the weight is right, the generic model is of another size.",
+            stacklevel=3,
+        )
+    return out
+
+
+def _length_prior(
+    skeleton: Skeleton,
+    rb: np.ndarray,
+    fitted: np.ndarray,
+    body_weight: float | None,
+    sigma_factor: float,
+    rel_sd: float | None,
+    norm: Normalization,
+    length_scale: float,
+    n_skeleton_params: int,
+) -> tuple[np.ndarray, np.ndarray] | tuple[()]:
+    """``(centre, weight)`` of the reduced skeleton parameters for ``fit_full_lm``: lengths of
+    bones without an anatomical prior ~ N(s g, (rel_sd s g)^2) with g the generic lengths and
+    s the median ratio of the ``fitted`` lengths (reduced bones) to them, as residuals in
+    normalised pixels for a label noise of 1 px; offsets free. ``()`` when disabled."""
+    if rel_sd is None:
+        return ()
+    if not rel_sd > 0:
+        raise ValueError(f"length_prior_sd must be > 0 or None, got {rel_sd}")
+    centre = np.zeros(n_skeleton_params)
+    weight = np.zeros(n_skeleton_params)
+    anatomical = np.isfinite(skeleton.bone_length_bounds(body_weight, sigma_factor)[rb, 1])
+    g = skeleton.bone_lengths[rb]
+    if (~anatomical).any():
+        g = g * float(np.exp(np.median(np.log(fitted[~anatomical] / g[~anatomical]))))
+    generic = g / length_scale
+    pixel = float(np.sqrt(norm.pixel[0] * norm.pixel[1]))
+    centre[: rb.size] = generic
+    weight[: rb.size] = np.where(anatomical, 0.0, 1.0 / (pixel * rel_sd * generic))
+    return centre, weight
+
+
+def _size_from_labels(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    lab_fcm: np.ndarray,
+    norm: Normalization,
+    length_scale: float,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    keep: np.ndarray,
+    n_sub: int = 12,
+) -> float:
+    """Scale of the generic model that best explains the labels (lengths, except those where
+    ``keep`` is true, and offsets times the scale): per-frame pose fits on up to ``n_sub``
+    frames over a geometric grid from 0.4 to 3, refined around the best; returns the scale
+    with the smallest median frame RMS."""
+    counts = np.isfinite(lab_fcm).all(axis=-1).sum(axis=(1, 2))
+    sub = np.sort(np.argsort(-counts)[: min(n_sub, counts.size)])
+    lab_sub = np.ascontiguousarray(lab_fcm[sub])
+    params = rig.get_params()
+    pose_bounds = _pose_bounds(skeleton, norm)
+    lo_z, hi_z = _bound_arrays(pose_bounds)
+    empty = np.zeros((0, 2), np.int64)
+    cache: dict[float, float] = {}
+
+    def cost(log_s: float) -> float:
+        key = round(log_s, 6)
+        if key not in cache:
+            s = float(np.exp(log_s))
+            lengths = np.where(keep, skeleton.bone_lengths, skeleton.bone_lengths * s)
+            sk = skeleton.with_parameters(lengths, skeleton.marker_offsets * s)
+            t0, r0 = initial_poses(rig, sk, lab_sub.transpose(1, 0, 2, 3), norm)
+            z0 = np.stack([_clip_to_bounds(z, pose_bounds) for z in _to_state(t0, r0, sk, norm)])
+            prob = _native.NativeLearning(
+                sk._native, params, lab_sub, lower, upper, norm._tuple(), empty, empty,
+                length_scale, sk.bone_lengths, sk.marker_offsets,
+            )  # fmt: skip
+            x, _ = prob.fit_poses_lm(np.ascontiguousarray(z0.ravel()), lo_z, hi_z, 30)
+            cache[key] = float(np.nanmedian(_frame_rms(prob, x, lab_sub)))
+        return cache[key]
+
+    grid = np.linspace(np.log(0.4), np.log(3.0), 9)
+    best = min(grid, key=cost)
+    step = grid[1] - grid[0]
+    for _ in range(3):  # refine: halve the step around the best
+        step /= 2
+        best = min((best - step, best, best + step), key=cost)
+    return float(np.exp(best))
 
 
 def _fit_frames(
