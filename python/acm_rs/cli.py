@@ -7,7 +7,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from . import __version__
+from ._version import __version__
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
