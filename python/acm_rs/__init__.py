@@ -20,6 +20,7 @@ from . import (
     project,
 )
 from ._native import AcmNumericalError
+from ._version import __version__
 from .calibration import CalibrationResult, calibrate
 from .camera import PARAM_NAMES, Camera, CameraRig
 from .learning import LearnedSkeleton, fit_pose, learn_skeleton
@@ -27,8 +28,6 @@ from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
 from .skeleton import BoneLengthConstraint, FKJacobian, Skeleton, SymmetryMap
 from .state import Normalization, StateMap
 from .tracking import PoseResult, track
-
-__version__ = "0.1.0"
 
 __all__ = [
     "AcmNumericalError",

@@ -7,7 +7,7 @@ import sys
 import time
 from collections.abc import Sequence
 
-from . import __version__
+from ._version import __version__
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -57,25 +57,13 @@ def _cmd_model(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_model(spec: str):
-    from pathlib import Path
-
-    from . import models
-    from .skeleton import Skeleton
-
-    if spec in models.available():
-        return models.load(spec)
-    if Path(spec).exists():
-        return Skeleton.load(spec)
-    raise ValueError(f"--model {spec!r} is neither a bundled model {models.available()} nor a file")
-
-
 def _cmd_learn(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from .camera import CameraRig
     from .dlc import read_labels
     from .learning import learn_skeleton
+    from .models import load_name_or_file
     from .plotting import save_figure
 
     rig = CameraRig.load(args.calibration, names=args.camera_names)
@@ -84,7 +72,7 @@ def _cmd_learn(args: argparse.Namespace) -> int:
             f"{len(args.labels)} label files for {len(rig)} cameras (give one per camera, in "
             f"rig order{'' if args.camera_names else '; --camera-names sets the order'})"
         )
-    skeleton = _load_model(args.model)
+    skeleton = load_name_or_file(args.model)
     labels = read_labels(args.labels, individual=args.individual)
     print(
         f"acm-rs learn: {skeleton.name} ({skeleton.n_markers} markers), {len(rig)} cameras, "

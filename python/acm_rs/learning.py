@@ -32,6 +32,8 @@ from . import _native
 from ._arrays import as_float_array
 from ._io import atomic_write
 from .camera import CameraRig
+from .labels import labels_in_skeleton_order as _labels_in_skeleton_order
+from .labels import match_marker_names
 from .rotation import rodrigues, rodrigues_inverse
 from .skeleton import Skeleton
 from .state import Normalization
@@ -55,62 +57,6 @@ LBFGSB_DEFAULTS: dict[str, float | int] = {
     "maxiter": 5000,
     "maxfun": 20000,
 }
-
-
-# -- inputs ---------------------------------------------------------------------------------
-def match_marker_names(label_names: Sequence[str], skeleton: Skeleton) -> np.ndarray:
-    """Map label column names to skeleton marker indices.
-
-    Accepts the skeleton's names and the ACM/DeepLabCut spellings ``marker_<name>_start`` and
-    ``spot_<name>``. Raises ``ValueError`` naming every unknown label.
-    """
-    known = {n: i for i, n in enumerate(skeleton.marker_names)}
-    out, unknown = [], []
-    for name in label_names:
-        key = str(name)
-        if key not in known:
-            for prefix in ("marker_", "spot_"):
-                key = key.removeprefix(prefix)
-            key = key.removesuffix("_start")
-        if key in known:
-            out.append(known[key])
-        else:
-            unknown.append(str(name))
-    if unknown:
-        raise ValueError(
-            f"labels for unknown markers {unknown}; the skeleton's markers are "
-            f"{list(skeleton.marker_names)}"
-        )
-    if len(set(out)) != len(out):
-        raise ValueError("two label columns map to the same skeleton marker")
-    return np.asarray(out, dtype=np.int64)
-
-
-def _labels_in_skeleton_order(
-    labels: np.ndarray, skeleton: Skeleton, rig: CameraRig, marker_names: Sequence[str] | None
-) -> np.ndarray:
-    lab = as_float_array(labels, "labels", (None, None, None, 2), finite=False)
-    if lab.ndim != 4:
-        raise ValueError(
-            f"labels must have shape (n_cams, n_frames, n_markers, 2), got {lab.shape}"
-        )
-    if np.isinf(lab).any():
-        raise ValueError("labels contain infinity (use NaN for unlabelled points)")
-    if lab.shape[0] != len(rig):
-        raise ValueError(f"labels are for {lab.shape[0]} cameras but the rig has {len(rig)}")
-    if marker_names is None:
-        if lab.shape[2] != skeleton.n_markers:
-            raise ValueError(
-                f"labels have {lab.shape[2]} markers but the skeleton has {skeleton.n_markers}; "
-                "pass marker_names to map label columns by name"
-            )
-        return lab
-    if len(marker_names) != lab.shape[2]:
-        raise ValueError(f"{len(marker_names)} marker_names for {lab.shape[2]} label columns")
-    idx = match_marker_names(marker_names, skeleton)
-    out = np.full(lab.shape[:2] + (skeleton.n_markers, 2), np.nan)
-    out[:, :, idx] = lab
-    return out
 
 
 # -- initial guess --------------------------------------------------------------------------

@@ -143,11 +143,11 @@ def _load_rig(config: ProjectConfig, session: Session | None = None):
 
 
 def _generic_model(config: ProjectConfig):
-    from .cli import _load_model
+    from .models import load_name_or_file
 
     spec = config.project["model"]
     local = config.root / spec
-    return _load_model(str(local) if local.is_file() else spec)
+    return load_name_or_file(str(local) if local.is_file() else spec)
 
 
 def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:

@@ -1,4 +1,9 @@
-"""Quantities shared by the exporters: per-point detection statistics and posterior variances."""
+"""Quantities shared by the exporters: per-point detection statistics and posterior variances.
+
+Frame numbers and posterior variances are also stored in a result's NPZ file, so they live in
+:mod:`acm_rs.tracking.result_npz` (the exporters import the result, never the reverse) and are
+re-exported here.
+"""
 
 from __future__ import annotations
 
@@ -12,23 +17,29 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..tracking.result_npz import POINTS, check_points, frame_numbers, posterior_variance
+
 if TYPE_CHECKING:  # pragma: no cover
     from ..tracking.result import PoseResult
 
-POINTS = ("joints", "markers")
+__all__ = [
+    "POINTS",
+    "UNIT_MM",
+    "UNIT_NAMES",
+    "atomic_path",
+    "check_points",
+    "detection_stats",
+    "frame_numbers",
+    "point_names",
+    "positions",
+    "posterior_variance",
+]
 
 #: Length units the exporters can convert between, in millimetres.
 UNIT_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 #: NWB-style spelled-out names of the length units.
 UNIT_NAMES = {"mm": "millimeters", "cm": "centimeters", "m": "meters"}
-
-
-def check_points(points: str) -> str:
-    """Validate the ``points`` argument of the exporters (``"joints"`` or ``"markers"``)."""
-    if points not in POINTS:
-        raise ValueError(f"points must be 'joints' or 'markers', got {points!r}")
-    return points
 
 
 def point_names(result: PoseResult, points: str) -> tuple[str, ...]:
@@ -39,25 +50,6 @@ def point_names(result: PoseResult, points: str) -> tuple[str, ...]:
 def positions(result: PoseResult, points: str) -> np.ndarray:
     """(T, P, 3) positions of the exported points (skeleton units)."""
     return np.asarray(result.joints if check_points(points) == "joints" else result.markers, float)
-
-
-def frame_numbers(result: PoseResult, frames: np.ndarray | None) -> np.ndarray:
-    """(T,) frame numbers: ``frames`` if given, else ``result.info["frames"]``, else 0..T-1."""
-    if frames is None:
-        frames = result.info.get("frames")
-    if frames is None:
-        return np.arange(result.n_frames, dtype=np.int64)
-    out = np.asarray(frames)
-    if out.shape != (result.n_frames,):
-        raise ValueError(
-            f"frames must have shape ({result.n_frames},) (one number per tracked frame), "
-            f"got {out.shape}"
-        )
-    if not np.issubdtype(out.dtype, np.integer):
-        if not np.all(np.isfinite(out)) or np.any(out != np.round(out)):
-            raise ValueError("frames must be whole frame numbers")
-        out = out.astype(np.int64)
-    return out
 
 
 def detection_stats(
@@ -121,43 +113,6 @@ def detection_stats(
                 ncams[:, j] = seen[:, :, ks].any(axis=2).sum(axis=0)
     score = np.where(ncams > 0, score, 0.0)
     return error, ncams.astype(np.int64), score
-
-
-def posterior_variance(result: PoseResult, points: str, chunk: int = 256) -> np.ndarray:
-    """(T, P, 3) posterior variance of each coordinate (skeleton units squared).
-
-    Joints: ``result.joints_std ** 2``. Markers: ``result.info["markers_std"] ** 2`` when the
-    tracker stored it, otherwise the unscented transform of the state posterior
-    through forward kinematics (the ``2 n`` symmetric sigma points ``mean +- sqrt(n) L e_i``,
-    equal weights), as the tracker does for the joints. NaN everywhere when the result has no
-    posterior covariance (``method="deterministic"``).
-    """
-    check_points(points)
-    n_t = result.n_frames
-    n_p = result.skeleton.n_joints if points == "joints" else result.skeleton.n_markers
-    if result.state_cov is None:
-        return np.full((n_t, n_p, 3), np.nan)
-    if points == "joints":
-        return np.asarray(result.joints_std, float) ** 2
-    stored = result.info.get("markers_std")  # computed in Rust by the tracker
-    if isinstance(stored, np.ndarray) and stored.shape == (n_t, n_p, 3):
-        return stored**2
-    mean = np.asarray(result.state_mean, float)
-    cov = np.asarray(result.state_cov, float)
-    n = mean.shape[1]
-    out = np.empty((n_t, n_p, 3))
-    eye = 1e-12 * np.eye(n)
-    for s in range(0, n_t, chunk):
-        e = min(s + chunk, n_t)
-        c = 0.5 * (cov[s:e] + cov[s:e].transpose(0, 2, 1)) + eye
-        chol = np.linalg.cholesky(c) * np.sqrt(n)  # (t, n, n), columns = sigma directions
-        dirs = chol.transpose(0, 2, 1)  # (t, n, n): row i = sqrt(n) L e_i
-        sig = np.concatenate([mean[s:e, None] + dirs, mean[s:e, None] - dirs], axis=1)
-        t, r = result.state_map.to_pose(sig.reshape(-1, n))
-        _, mk = result.skeleton.forward(t, r)
-        mk = mk.reshape(e - s, 2 * n, n_p, 3)
-        out[s:e] = mk.var(axis=1)
-    return out
 
 
 @contextlib.contextmanager

@@ -154,7 +154,7 @@ def to_nwb(
     from pynwb import NWBHDF5IO, NWBFile, TimeSeries
     from pynwb.file import Subject
 
-    from .. import __version__
+    from .._version import __version__
 
     path = Path(path)
     if path.suffix.lower() != ".nwb":

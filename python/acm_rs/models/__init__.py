@@ -11,7 +11,7 @@ from pathlib import Path
 
 from ..skeleton import Skeleton
 
-__all__ = ["available", "load", "mouse", "path", "rat"]
+__all__ = ["available", "load", "load_name_or_file", "mouse", "path", "rat"]
 
 
 def available() -> list[str]:
@@ -33,6 +33,19 @@ def path(name: str) -> Path:
 def load(name: str) -> Skeleton:
     """Load a bundled model by name (``"rat"`` or ``"mouse"``)."""
     return Skeleton.load(path(name))
+
+
+def load_name_or_file(spec: str | Path) -> Skeleton:
+    """A bundled model by name, else a skeleton TOML file by path.
+
+    What ``--model`` / ``--skeleton`` of the command line and ``project.model`` of a project's
+    ``config.toml`` accept.
+    """
+    if spec in available():
+        return load(str(spec))
+    if Path(spec).exists():
+        return Skeleton.load(spec)
+    raise ValueError(f"--model {str(spec)!r} is neither a bundled model {available()} nor a file")
 
 
 def rat() -> Skeleton:

@@ -18,8 +18,8 @@ def _frame_slice(spec: str | None, n: int) -> slice:
 
 def _cmd_track(args: argparse.Namespace) -> int:
     from ..camera import CameraRig
-    from ..cli import _load_model
     from ..dlc import read_labels
+    from ..models import load_name_or_file
     from .bundle import write_bundle
     from .track import track
 
@@ -29,7 +29,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
             f"{len(args.dlc)} DeepLabCut files for {len(rig)} cameras (give one per camera in "
             f"rig order{'' if args.camera_names else '; --camera-names sets the order'})"
         )
-    skeleton = _load_model(args.skeleton)
+    skeleton = load_name_or_file(args.skeleton)
     ls = read_labels(args.dlc, individual=args.individual)
     sel = _frame_slice(args.frame_range, ls.points.shape[1])
     points = ls.points[:, sel]

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .._io import atomic_write
+from .result_npz import read_npz, to_npz
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..camera import CameraRig
@@ -160,8 +161,6 @@ class PoseResult:
         The CSV has one row per frame and columns ``<joint>_x, <joint>_y, <joint>_z`` followed
         by ``<joint>_x_std, ...``; lengths in ``skeleton.units``.
         """
-        from ..export.npz import to_npz
-
         path = Path(path)
         base = path.with_suffix("") if path.suffix in (".npz", ".csv") else path
         npz = to_npz(self, base.with_suffix(".npz"))
@@ -186,7 +185,6 @@ class PoseResult:
         import tomllib
 
         from ..camera import Camera, CameraRig
-        from ..export.npz import read_npz
         from ..skeleton import Skeleton
         from ..state import Normalization, StateMap
 

@@ -16,12 +16,8 @@ import numpy as np
 
 from .. import _native
 from ..camera import CameraRig
-from ..learning import (
-    _labels_in_skeleton_order,
-    _pose_bounds,
-    _to_state,
-    initial_poses,
-)
+from ..labels import labels_in_skeleton_order, match_marker_names
+from ..learning import _pose_bounds, _to_state, initial_poses
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
 from .result import PoseResult
@@ -74,15 +70,13 @@ def _measurements(
     pcutoff: float,
     marker_names: Sequence[str] | None,
 ) -> np.ndarray:
-    det = _labels_in_skeleton_order(detections, skeleton, rig, marker_names).copy()
+    det = labels_in_skeleton_order(detections, skeleton, rig, marker_names).copy()
     if likelihood is not None:
         lik = np.asarray(likelihood, dtype=np.float64)
         want = np.asarray(detections).shape[:3]
         if lik.shape != want:
             raise ValueError(f"likelihood must have shape {want} (n_cams, T, M), got {lik.shape}")
         if marker_names is not None:
-            from ..learning import match_marker_names
-
             full = np.full(det.shape[:3], np.nan)
             full[:, :, match_marker_names(marker_names, skeleton)] = lik
             lik = full
