@@ -67,6 +67,7 @@ LAYERS: dict[str, int] = {
     "acm_rs.dlc": 1,
     "acm_rs.labels": 1,
     "acm_rs.acm_formats": 1,
+    "acm_rs.acm_model": 1,
     "acm_rs.plotting": 1,
     # 0: the compiled core and small helpers that import nothing of acm_rs.
     "acm_rs._native": 0,
