@@ -171,3 +171,44 @@ def test_diagnostics_name_bounds_outliers_and_wrong_weights(tmp_path):
     assert check_body_weight(model.skeleton, 72.0) == []
     with pytest.raises(ValueError, match="give grams"):
         check_body_weight(model.skeleton, 0.35)
+
+
+def test_units_and_likelihood_are_honoured(tmp_path):
+    """A model in mm learns the same skeleton (x 10); a rig in mm with the model in cm is
+    refused with a message naming the units; prediction labels below pcutoff are not used
+    and likelihoods on a 0-100 scale are refused."""
+    c = ac.write_conformance_dataset(tmp_path, seed=3, body_weight=72.0, n_manual=20)
+    cfg, model, rig = _read(c.folder)
+    manual = af.read_labels_manual(
+        c.folder / "labels_manual.npz", model.acm_marker_names, n_cams=len(rig)
+    )
+    kw = dict(body_weight=72.0, marker_names=manual.marker_names, progress=False)
+    ref = learn_skeleton(rig, model.skeleton, manual.points, **kw)
+    # the same in mm
+    sk_mm = acm_rs.Skeleton.from_dict(model.skeleton.to_dict() | {"units": "mm"})
+    sk_mm = sk_mm.with_parameters(sk_mm.bone_lengths * 10, sk_mm.marker_offsets * 10)
+    mm_constraints = [
+        type(b)(bone=b.bone, slope=b.slope * 10, slope_sd=b.slope_sd * 10)
+        for b in sk_mm.bone_length_constraints
+    ]
+    doc = sk_mm.to_dict() | {"bone_length_constraints": [vars(b) for b in mm_constraints]}
+    sk_mm = acm_rs.Skeleton.from_dict(doc)
+    in_mm = learn_skeleton(rig.scaled(10.0), sk_mm, manual.points, **kw)
+    np.testing.assert_allclose(in_mm.skeleton.bone_lengths / 10, ref.skeleton.bone_lengths,
+                               rtol=2e-3, atol=2e-3)  # fmt: skip
+    assert abs(in_mm.rms - ref.rms) < 0.01
+    # mixing: rig in mm, model in cm
+    with pytest.raises(ValueError, match=r"calibration in mm while the model is in cm"):
+        learn_skeleton(rig.scaled(10.0), model.skeleton, manual.points, **kw)
+    # predictions: confident mistakes below pcutoff are dropped
+    pts = manual.points.copy()
+    lik = np.full(pts.shape[:-1], 0.99)
+    bad = np.random.default_rng(0).random(lik.shape) < 0.1
+    pts[bad] += 80.0
+    lik[bad] = 0.3
+    pred = learn_skeleton(rig, model.skeleton, pts, likelihood=lik, pcutoff=0.9, **kw)
+    assert pred.rms < 1.5
+    with pytest.raises(ValueError, match="0-100 scale"):
+        learn_skeleton(rig, model.skeleton, pts, likelihood=lik * 100, **kw)
+    with pytest.raises(ValueError, match="unknown length unit 'inches'"):
+        acm_rs.Normalization.for_units("inches")

@@ -268,6 +268,16 @@ class CameraRig:
             Camera.from_params(row, c.size, c.name) for row, c in zip(p, self.cameras, strict=True)
         )
 
+    def scaled(self, factor: float) -> CameraRig:
+        """The same rig in another length unit: translations times ``factor`` (e.g. 0.1 for
+        a calibration in mm used with a model in cm, 6.5 for board squares of 6.5 cm)."""
+        f = float(factor)
+        if not (np.isfinite(f) and f > 0):
+            raise ValueError(f"scale factor must be finite and > 0, got {factor}")
+        p = self.get_params().copy()
+        p[:, 3:6] *= f  # [r (3), t (3), fx, fy, cx, cy, k1, k2, p1, p2, k3]
+        return self.set_params(p)
+
     def project(self, points: np.ndarray) -> np.ndarray:
         """Project world points into every camera.
 

@@ -60,6 +60,8 @@ def _cmd_model(args: argparse.Namespace) -> int:
 def _cmd_learn(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    import numpy as np
+
     from .camera import CameraRig
     from .dlc import read_labels
     from .learning import learn_skeleton
@@ -78,9 +80,13 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         f"acm-rs learn: {skeleton.name} ({skeleton.n_markers} markers), {len(rig)} cameras, "
         f"{labels.points.shape[1]} labelled frames, {len(labels.bodyparts)} body parts"
     )
+    if labels.likelihood is not None:
+        low = int(np.sum(labels.likelihood < args.pcutoff))
+        print(f"  predictions: {low} labels below pcutoff {args.pcutoff} are not used")
     res = learn_skeleton(
         rig, skeleton, labels.points, body_weight=args.body_weight,
         symmetric=not args.no_symmetry, marker_names=labels.bodyparts, progress=True,
+        likelihood=labels.likelihood, pcutoff=args.pcutoff,
     )  # fmt: skip
     out = Path(args.output)
     files = res.save(out.with_suffix(""))
@@ -128,6 +134,11 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("--labels", nargs="+", help="DeepLabCut CollectedData .csv/.h5, per camera")
     lp.add_argument("--individual", help="individual to use in multi-animal label files")
     lp.add_argument("--body-weight", type=float, help="body weight (g) for bone-length priors")
+    lp.add_argument(
+        "--pcutoff", type=float, default=0.9,
+        help="labels from DeepLabCut predictions: likelihood cutoff in [0, 1] (default 0.9); "
+        "manual CollectedData files have no likelihood and are used whole",
+    )  # fmt: skip
     lp.add_argument("--no-symmetry", action="store_true", help="do not enforce left/right symmetry")
     lp.add_argument("-o", "--output", help="learned skeleton TOML to write")
     lp.add_argument("--plots", help="folder for the reprojection and skeleton figures")

@@ -18,7 +18,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .camera import CameraRig
     from .skeleton import Skeleton
 
-__all__ = ["labels_in_skeleton_order", "match_marker_names"]
+__all__ = ["labels_in_skeleton_order", "mask_by_likelihood", "match_marker_names"]
 
 
 def match_marker_names(label_names: Sequence[str], skeleton: Skeleton) -> np.ndarray:
@@ -79,3 +79,46 @@ def labels_in_skeleton_order(
     out = np.full(lab.shape[:2] + (skeleton.n_markers, 2), np.nan)
     out[:, :, idx] = lab
     return out
+
+
+def mask_by_likelihood(
+    points: np.ndarray, likelihood: np.ndarray | None, pcutoff: float
+) -> np.ndarray:
+    """Points with a likelihood below ``pcutoff`` (or NaN) set to NaN (a copy).
+
+    Parameters
+    ----------
+    points : array_like, shape (n_cams, F, K, 2)
+        Pixels, in the columns' own order.
+    likelihood : array_like, shape (n_cams, F, K), or None
+        DeepLabCut confidences in [0, 1]; None returns ``points`` unchanged (manual labels).
+    pcutoff : float
+        In [0, 1].
+
+    Raises
+    ------
+    ValueError
+        Wrong shapes, a cutoff outside [0, 1], or likelihoods outside [0, 1] (e.g. a 0-100
+        scale), naming the largest value.
+    """
+    pts = np.array(points, dtype=np.float64)
+    if likelihood is None:
+        return pts
+    if not 0.0 <= float(pcutoff) <= 1.0:
+        raise ValueError(f"pcutoff must be in [0, 1], got {pcutoff}")
+    lik = np.asarray(likelihood, dtype=np.float64)
+    if lik.shape != pts.shape[:-1]:
+        raise ValueError(
+            f"likelihood must have shape {pts.shape[:-1]} (n_cams, frames, columns), "
+            f"got {lik.shape}"
+        )
+    finite = lik[np.isfinite(lik)]
+    if finite.size and (finite.min() < 0.0 or finite.max() > 1.0):
+        raise ValueError(
+            f"likelihoods must lie in [0, 1] (DeepLabCut's scale); these range from "
+            f"{finite.min():g} to {finite.max():g}" + (" (a 0-100 scale? divide by 100)"
+                                                       if finite.max() <= 100 else "")
+        )  # fmt: skip
+    with np.errstate(invalid="ignore"):
+        pts[~(lik >= pcutoff)] = np.nan
+    return pts

@@ -33,7 +33,7 @@ from ._arrays import as_float_array
 from ._io import atomic_write
 from .camera import CameraRig
 from .labels import labels_in_skeleton_order as _labels_in_skeleton_order
-from .labels import match_marker_names
+from .labels import mask_by_likelihood, match_marker_names
 from .rotation import rodrigues, rodrigues_inverse
 from .skeleton import Skeleton
 from .state import Normalization
@@ -522,6 +522,8 @@ def learn_skeleton(
     symmetric: bool = True,
     progress: bool = True,
     marker_names: Sequence[str] | None = None,
+    likelihood: np.ndarray | None = None,
+    pcutoff: float = 0.9,
     normalization: Normalization | None = None,
     sigma_factor: float = 10.0,
     options: dict | None = None,
@@ -552,8 +554,14 @@ def learn_skeleton(
         Show a progress bar.
     marker_names : sequence of str, optional
         Names of the label columns (ACM ``spot_``/``marker_..._start`` spellings accepted).
+    likelihood : array_like, shape (n_cams, n_frames, n_markers), optional
+        Confidences of labels that come from predictions (DeepLabCut): labels below
+        ``pcutoff`` are not used. None for manual labels.
+    pcutoff : float
+        Likelihood cutoff in [0, 1] (the authors' 0.9).
     normalization : Normalization, optional
-        Sec. 3.3 constants (default: the paper's). Lengths and offsets are scaled by
+        Sec. 3.3 constants (default: the paper's in the skeleton's ``units``, pixel scales
+        from the rig's image sizes). Lengths and offsets are scaled by
         ``normalization.translation / 50`` in the optimiser.
     sigma_factor : float
         Width of the bone-length priors in standard deviations (authors: 10).
@@ -589,7 +597,8 @@ def learn_skeleton(
         Wrong shapes, labels for unknown markers, a frame with fewer than 3 labelled points,
         infinite labels, or labels for a different number of cameras.
     """
-    norm = normalization or Normalization()
+    norm = normalization or Normalization.for_units(skeleton.units, [c.size for c in rig])
+    labels = mask_by_likelihood(labels, likelihood, pcutoff)
     lab = _labels_in_skeleton_order(labels, skeleton, rig, marker_names)
     n_frames = lab.shape[1]
     if n_frames == 0:
@@ -610,6 +619,7 @@ def learn_skeleton(
     bp, mp = _pairs(skeleton, symmetric)
     info: dict = {"stages": {}}
 
+    info["scale_ratio"] = check_scale(rig, skeleton, lab)
     # (0) size: the generic model scaled to the animal in the labels (a 72 g and a 350 g rat
     # differ by ~1.7x in every length; starting from the wrong size ends in a wrong minimum)
     t0 = time.perf_counter()
@@ -779,6 +789,59 @@ def _frame_rms(problem: _native.NativeLearning, x: np.ndarray, lab_fcm: np.ndarr
     err = np.sum((projected - lab_fcm) ** 2, axis=-1)
     with np.errstate(invalid="ignore"):
         return np.sqrt(np.nanmean(np.where(np.isfinite(err), err, np.nan), axis=(1, 2)))
+
+
+def check_scale(
+    rig: CameraRig, skeleton: Skeleton, labels: np.ndarray, limit: float = 4.0
+) -> float:
+    """Size of the animal in the labels relative to ``skeleton`` (1 = the model's size).
+
+    Triangulates the labelled markers (frames with >= 4 markers seen by >= 2 cameras) and
+    compares their spread about their centroid with the same markers' spread in the model's
+    rest pose (median over frames). A calibration in other units than the model (mm vs cm:
+    a ratio near 10 or 0.1) is refused.
+
+    Parameters
+    ----------
+    labels : numpy.ndarray, shape (n_cams, F, M, 2)
+        Pixels in the skeleton's marker order, NaN where missing.
+
+    Raises
+    ------
+    ValueError
+        When the ratio is above ``limit`` or below ``1 / limit``, saying how to fix it.
+    """
+    pts = triangulate(rig, labels)
+    _, rest = skeleton.rest_pose()
+    ratios = []
+    for f in range(pts.shape[0]):
+        ok = np.all(np.isfinite(pts[f]), axis=1)
+        if ok.sum() < 4:
+            continue
+        a = pts[f, ok] - pts[f, ok].mean(axis=0)
+        b = rest[ok] - rest[ok].mean(axis=0)
+        sb = np.sqrt(np.mean(np.sum(b**2, axis=1)))
+        if sb > 0:
+            ratios.append(np.sqrt(np.mean(np.sum(a**2, axis=1))) / sb)
+    if not ratios:
+        return float("nan")
+    ratio = float(np.median(ratios))
+    if not 1.0 / limit <= ratio <= limit:
+        units = skeleton.units or "the model's units"
+        hint = ""
+        for name, f in (("mm vs cm", 10.0), ("cm vs mm", 0.1), ("m vs cm", 0.01),
+                        ("board squares of 6.5 cm", 1 / 6.5)):  # fmt: skip
+            if abs(np.log(ratio / f)) < np.log(2.0):
+                hint = f" A ratio near {f:g} suggests a calibration in {name.split(' vs ')[0]}"
+                hint += " while the model is in " + (name.split(" vs ")[1] if " vs " in name
+                                                     else units) + "."  # fmt: skip
+        raise ValueError(
+            f"the labelled markers triangulate to an animal {ratio:.3g} x the size of the "
+            f"model {skeleton.name!r} ({units}): the calibration and the model are in "
+            f"different length units, or the cameras are in the wrong order.{hint} Convert "
+            "one of them (CameraRig.scaled(factor), or a model in the calibration's units)."
+        )
+    return ratio
 
 
 def check_body_weight(

@@ -178,10 +178,14 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
     labels = read_labels([files[n] for n in names])
     res = learn_skeleton(
         rig, generic, labels.points, body_weight=config.project.get("body_weight"),
-        marker_names=labels.bodyparts, progress=True,
+        marker_names=labels.bodyparts, progress=True, likelihood=labels.likelihood,
+        pcutoff=config.tracking["pcutoff"],
     )  # fmt: skip
     res.skeleton.save(out)
     _say(f"learn: {labels.points.shape[1]} frames, RMS {res.rms:.2f} px -> {out}")
+    for line in res.summary().splitlines():
+        if "WARNING" in line or "note:" in line:
+            _say("learn: " + line.strip())
     return out
 
 

@@ -147,6 +147,9 @@ def _cmd_run_acm(args) -> int:
         f"{res.learned.rms:.2f} px); tracked {res.result.n_frames} time points in "
         f"{s['track']:.1f} s ({len(res.result.em_history)} EM iterations)"
     )
+    for line in res.learned.summary().splitlines():
+        if "WARNING" in line or "note:" in line:
+            print(line)
     for f in res.files:
         print(f"  wrote {f}")
     return 0

@@ -9,6 +9,7 @@ Alg. 10: ``r = b0 + (b1 - b0) / 2 * (1 + erf(sqrt(pi) / 2 * z))``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -20,6 +21,10 @@ from ._arrays import as_float_array
 if TYPE_CHECKING:  # pragma: no cover
     from .camera import CameraRig
     from .skeleton import Skeleton
+
+
+#: Length units the models and calibrations may declare, in centimetres.
+UNIT_IN_CM = {"mm": 0.1, "cm": 1.0, "m": 100.0}
 
 
 @dataclass(frozen=True)
@@ -49,6 +54,31 @@ class Normalization:
         ):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"normalisation constant {name} must be finite and > 0, got {v}")
+
+    @classmethod
+    def for_units(
+        cls, units: str, image_sizes: Sequence[tuple[float, float]] = ()
+    ) -> Normalization:
+        """The paper's constants in a model's length unit: ``c_t`` = 50 cm in ``units``;
+        ``c_1, c_2`` half the largest image size (640, 512 when none is given).
+
+        Raises
+        ------
+        ValueError
+            An unknown unit (known: mm, cm, m; "" is taken as cm).
+        """
+        if units not in UNIT_IN_CM and units != "":
+            raise ValueError(
+                f"unknown length unit {units!r}; use one of {sorted(UNIT_IN_CM)} (or convert "
+                "the model and calibration to one of them)"
+            )
+        translation = 50.0 / UNIT_IN_CM.get(units, 1.0)
+        sizes = [tuple(s) for s in image_sizes if s is not None]
+        if sizes:
+            w = max(s[0] for s in sizes)
+            h = max(s[1] for s in sizes)
+            return cls(translation=translation, pixel=(w / 2.0, h / 2.0))
+        return cls(translation=translation)
 
     @classmethod
     def from_image_size(

@@ -16,8 +16,8 @@ import numpy as np
 
 from .. import _native
 from ..camera import CameraRig
-from ..labels import labels_in_skeleton_order, match_marker_names
-from ..learning import _pose_bounds, _to_state, initial_poses
+from ..labels import labels_in_skeleton_order, mask_by_likelihood
+from ..learning import _pose_bounds, _to_state, check_scale, initial_poses
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
 from .result import PoseResult
@@ -27,22 +27,14 @@ from .result import PoseResult
 #: Mahalanobis innovation exceeds ``-2 ln(1 - p)``; 0.999 -> 13.8).
 DEFAULT_GATE = 0.999
 
-_UNIT_SCALE = {"mm": 500.0, "cm": 50.0, "m": 0.5}
-
 
 def default_normalization(rig: CameraRig, skeleton: Skeleton) -> Normalization:
-    """Sec. 3.3 constants for a rig and skeleton.
+    """Sec. 3.3 constants for a rig and skeleton (:meth:`Normalization.for_units`).
 
     ``c_1, c_2`` are half the largest image size in the rig (640, 512 for 1280x1024 sensors,
     the paper's value when sizes are unknown); ``c_t`` is 50 cm in the skeleton's units.
     """
-    sizes = [cam.size for cam in rig if cam.size is not None]
-    translation = _UNIT_SCALE.get(skeleton.units, 50.0)
-    if sizes:
-        w = max(s[0] for s in sizes)
-        h = max(s[1] for s in sizes)
-        return Normalization(translation=translation, pixel=(w / 2.0, h / 2.0))
-    return Normalization(translation=translation)
+    return Normalization.for_units(skeleton.units, [cam.size for cam in rig])
 
 
 def _norm_dict(norm: Normalization) -> dict:
@@ -70,18 +62,8 @@ def _measurements(
     pcutoff: float,
     marker_names: Sequence[str] | None,
 ) -> np.ndarray:
-    det = labels_in_skeleton_order(detections, skeleton, rig, marker_names).copy()
-    if likelihood is not None:
-        lik = np.asarray(likelihood, dtype=np.float64)
-        want = np.asarray(detections).shape[:3]
-        if lik.shape != want:
-            raise ValueError(f"likelihood must have shape {want} (n_cams, T, M), got {lik.shape}")
-        if marker_names is not None:
-            full = np.full(det.shape[:3], np.nan)
-            full[:, :, match_marker_names(marker_names, skeleton)] = lik
-            lik = full
-        with np.errstate(invalid="ignore"):
-            det[~(lik >= pcutoff)] = np.nan
+    masked = mask_by_likelihood(detections, likelihood, pcutoff)
+    det = labels_in_skeleton_order(masked, skeleton, rig, marker_names).copy()
     det[~np.isfinite(det).all(axis=-1)] = np.nan
     if not np.isfinite(det).any():
         raise ValueError(
@@ -234,6 +216,7 @@ def track(
     if not (math.isfinite(noise) and noise > 0):
         raise ValueError(f"noise must be > 0, got {noise}")
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
+    check_scale(rig, skeleton, det)  # calibration and model in the same units
     n_frames = det.shape[1]
     norm = normalization or default_normalization(rig, skeleton)
     sm = StateMap(skeleton, norm, joint_limits)
