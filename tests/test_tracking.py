@@ -210,3 +210,18 @@ def test_marker_std_from_rust_equals_the_python_unscented_transform(tracked):
     python = posterior_variance(dataclasses.replace(tracked, info=info), "markers")
     # (the Python path adds a 1e-12 jitter to the covariance: ~1e-9 cm² here)
     np.testing.assert_allclose(rust, python, rtol=1e-4, atol=1e-8)
+
+
+def test_wrong_camera_order_and_units_are_refused(session):
+    """DeepLabCut files in the wrong camera order, or a calibration in mm with a model in cm,
+    are refused before EM with a message that says what to fix (issue 12 item 6)."""
+    sk, rig, _, _, det, lik, _, _ = session
+    short = det[:, :30]
+    swapped = short[[1, 0, 2, 3]]
+    with pytest.raises(ValueError, match=r"not in the calibration's camera order"):
+        acm_rs.track(rig, sk, swapped, likelihood=lik[[1, 0, 2, 3], :30], progress=False)
+    with (
+        pytest.warns(UserWarning, match="implausible"),
+        pytest.raises(ValueError, match=r"calibration in mm while the model is in cm"),
+    ):
+        acm_rs.track(rig.scaled(10.0), sk, short, likelihood=lik[:, :30], progress=False)

@@ -91,6 +91,79 @@ def _first_pose(
     return f0, t0[0], r0[0]
 
 
+def _frames_rms(rig: CameraRig, skeleton: Skeleton, det: np.ndarray, norm: Normalization) -> float:
+    """Median over frames of the RMS reprojection error (px) of per-frame fits."""
+    t, r = _deterministic(rig, skeleton, det, norm)
+    err = np.linalg.norm(skeleton.project(rig, t, r) - det, axis=-1)
+    with np.errstate(invalid="ignore"):
+        per_frame = np.sqrt(np.nanmean(np.where(np.isfinite(err), err**2, np.nan), axis=(0, 2)))
+    return float(np.nanmedian(per_frame))
+
+
+def check_camera_order(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    det: np.ndarray,
+    norm: Normalization,
+    n_frames: int = 5,
+    plausible_px: float = 15.0,
+) -> float:
+    """Fit the ``n_frames`` best-detected frames; if their reprojection error is implausible
+    for detections (> ``plausible_px``), try every other assignment of the detection files to
+    the cameras (up to 5 cameras) and refuse when one fits far better.
+
+    Returns the median per-frame RMS error (px) in the given order.
+
+    Raises
+    ------
+    ValueError
+        When another camera order fits at least 3x better: the files are in the wrong order.
+
+    Warns
+    -----
+    UserWarning
+        When no order fits plausibly (wrong calibration, model or units).
+    """
+    import itertools
+    import warnings
+
+    seen = (np.isfinite(det[..., 0]).sum(axis=0) >= 2).sum(axis=1)
+    frames = np.argsort(-seen, kind="stable")[:n_frames]
+    frames = np.sort(frames[seen[frames] >= 3])
+    if frames.size == 0:
+        return float("nan")
+    sub = det[:, frames]
+    rms = _frames_rms(rig, skeleton, sub, norm)
+    if not rms > plausible_px:
+        return rms
+    n_cams = len(rig)
+    best, best_perm = rms, None
+    if n_cams <= 5:
+        for perm in itertools.permutations(range(n_cams)):
+            if perm == tuple(range(n_cams)):
+                continue
+            e = _frames_rms(rig, skeleton, sub[list(perm)], norm)
+            if e < best:
+                best, best_perm = e, perm
+    names = [c.name or str(i) for i, c in enumerate(rig)]
+    if best_perm is not None and best < rms / 3.0:
+        order = ", ".join(f"{names[i]} <- file {k + 1}" for i, k in enumerate(best_perm))
+        raise ValueError(
+            f"the detections fit the calibration with {rms:.1f} px reprojection error in the "
+            f"given camera order, but with {best:.1f} px when assigned as {order}: the "
+            "detection files are not in the calibration's camera order. Give one file per "
+            f"camera in the order {names} (or name the cameras so they can be matched)."
+        )
+    warnings.warn(
+        f"the best-detected frames fit with {rms:.1f} px reprojection error, implausible for "
+        "DeepLabCut detections (typically 2-5 px), and no other camera order fits better: "
+        "check the calibration (units, frame), the skeleton (another animal or model) and "
+        "the detection files",
+        stacklevel=3,
+    )
+    return rms
+
+
 def _deterministic(
     rig: CameraRig, skeleton: Skeleton, det: np.ndarray, norm: Normalization, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -135,6 +208,28 @@ class _Printer:
                 flush=True,
             )
         return True
+
+
+def _warn_implausible_fit(result: PoseResult, fit_px: float, factor: float = 3.0) -> None:
+    """Warn when the tracked poses reproject far worse than per-frame fits of the same
+    detections did (median error > ``factor`` x theirs and > 5 px): the temporal model
+    over-smooths or diverged (e.g. EM fed on a long stretch without detections)."""
+    import warnings
+
+    err = result.reprojection_error()
+    ok = np.isfinite(err)
+    if not ok.any() or not np.isfinite(fit_px):
+        return
+    med = float(np.median(err[ok]))
+    result.info["median_reprojection_px"] = med
+    if med > max(5.0, factor * fit_px):
+        warnings.warn(
+            f"the tracked poses reproject with a median error of {med:.1f} px, {med / fit_px:.1f}"
+            f" x that of per-frame fits of the same detections ({fit_px:.1f} px RMS): the "
+            "temporal model does not fit these data (check result.em_history and the frames "
+            "without detections; method='deterministic' gives the per-frame fits)",
+            stacklevel=3,
+        )
 
 
 def track(
@@ -216,9 +311,11 @@ def track(
     if not (math.isfinite(noise) and noise > 0):
         raise ValueError(f"noise must be > 0, got {noise}")
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
-    check_scale(rig, skeleton, det)  # calibration and model in the same units
     n_frames = det.shape[1]
     norm = normalization or default_normalization(rig, skeleton)
+    # sanity checks that speak: camera order, then units (both refuse with the fix)
+    fit_px = check_camera_order(rig, skeleton, det, norm)
+    check_scale(rig, skeleton, det)
     sm = StateMap(skeleton, norm, joint_limits)
     if method == "deterministic":
         t, r = _deterministic(rig, skeleton, det, norm)
@@ -229,6 +326,7 @@ def track(
             state_mean=sm.from_pose(t, r), state_cov=None, detections=det,
             info={
                 "method": "deterministic", "joint_limits": bool(joint_limits),
+                "check_fit_px": fit_px,
                 "normalization": _norm_dict(norm), "seconds": time.perf_counter() - t_start,
             },
         )  # fmt: skip
@@ -267,6 +365,7 @@ def track(
             "iterations": len(history), "tol": float(tol), "gate": gate,
             "params": params, "status": mask, "markers_std": markers_std,
             "first_frame": f0, "mu0_init": mu0, "joint_limits": bool(joint_limits),
+            "check_fit_px": fit_px,
             "normalization": _norm_dict(norm),
             "seconds_init": t_init, "seconds": time.perf_counter() - t_start,
         },
@@ -276,6 +375,7 @@ def track(
             "EM interrupted (Ctrl-C); returning the posterior under the last parameters",
             file=sys.stderr,
         )
+    _warn_implausible_fit(result, fit_px)
     if progress:
         print(result.summary(), file=sys.stderr)
     return result
