@@ -39,6 +39,7 @@ fn stats_dict<'py>(py: Python<'py>, s: &FilterStats) -> PyResult<Bound<'py, PyDi
     d.set_item("gated", s.gated)?;
     d.set_item("invisible", s.invisible)?;
     d.set_item("gate_skipped_frames", s.gate_skipped_frames)?;
+    d.set_item("log_likelihood", s.log_lik)?;
     Ok(d)
 }
 
@@ -99,7 +100,7 @@ impl PyTracker {
     /// called after every iteration with the GIL held and may return `False` to stop; Ctrl-C
     /// stops the run between iterations (the result is returned with `interrupted = True`).
     /// Returns `(params dict, history list of dicts, converged, interrupted)`.
-    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None))]
+    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None, ll_tol=None))]
     #[allow(clippy::too_many_arguments)]
     fn run_em<'py>(
         &mut self,
@@ -112,12 +113,14 @@ impl PyTracker {
         tol: f64,
         gate: Option<f64>,
         callback: Option<Py<PyAny>>,
+        ll_tol: Option<f64>,
     ) -> PyResult<EmReturn<'py>> {
         let init = self.params(&(mu0, v0, vz, vx))?;
         let opts = EmOptions {
             max_iter,
             tol,
             gate,
+            ll_tol,
         };
         let mut py_err: Option<PyErr> = None;
         let inner = &mut self.inner;

@@ -50,6 +50,9 @@ pub struct FilterStats {
     /// Frames in which the gate would have rejected more than half of the blocks and was
     /// therefore not applied.
     pub gate_skipped_frames: usize,
+    /// Marginal log-likelihood `Σ_t ln N(x_t; x̄_t, S_t)` of the used entries under the
+    /// predicted distributions (from the innovations; normalised-pixel units).
+    pub log_lik: f64,
 }
 
 /// Scratch buffers of the filter (allocated once per pass).
@@ -199,7 +202,14 @@ pub(crate) fn step<E: Emission + ?Sized>(
         let row = &ws.ytil[i * np..(i + 1) * np];
         s[i] = row.iter().zip(nu.iter()).map(|(a, b)| a * b).sum();
     }
+    let b = s.clone();
     super::dense::chol_solve_vec(&lm, &mut s);
+    // ln N(x; x̄, S) with S = V_x^{1/2} (I + Ỹ Ỹᵀ) V_x^{1/2}: |I + ỸỸᵀ| = |M| (Sylvester),
+    // νᵀS⁻¹ν = ν̃ᵀν̃ − bᵀM⁻¹b with b = Ỹᵀν̃ (Woodbury).
+    let log_det = ws.used.iter().map(|&j| params.vx[j].ln()).sum::<f64>()
+        + 2.0 * (0..m2).map(|i| lm[(i, i)].ln()).sum::<f64>();
+    let maha = nu.norm_squared() - b.dot(&s);
+    stats.log_lik -= 0.5 * (np as f64 * (2.0 * std::f64::consts::PI).ln() + log_det + maha);
     // μ̃ = z̄ + W s with W = [L, −L]/√2.
     let h = std::f64::consts::FRAC_1_SQRT_2;
     let d: DVector<f64> = DVector::from_fn(n, |i, _| h * (s[i] - s[n + i]));

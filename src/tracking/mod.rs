@@ -96,6 +96,9 @@ pub struct EmOptions {
     pub tol: f64,
     /// Innovation gate (squared Mahalanobis distance per image point), or `None`.
     pub gate: Option<f64>,
+    /// Stop instead on the marginal log-likelihood: when it changes by less than this many
+    /// nats per used measurement entry between iterations (`None`: Alg. 13 with `tol`).
+    pub ll_tol: Option<f64>,
 }
 
 impl Default for EmOptions {
@@ -104,6 +107,7 @@ impl Default for EmOptions {
             max_iter: 100,
             tol: 0.05,
             gate: None,
+            ll_tol: None,
         }
     }
 }
@@ -312,12 +316,20 @@ impl<E: Emission> Tracker<E> {
                 seconds: t0.elapsed().as_secs_f64(),
                 stats,
             };
+            let ll_change = history
+                .last()
+                .map(|prev: &Iteration| (it.stats.log_lik - prev.stats.log_lik).abs());
             history.push(it);
             if !on_iteration(&it) {
                 interrupted = true;
                 break;
             }
-            if delta < opts.tol {
+            let done = match opts.ll_tol {
+                // the log-likelihood of E-step k is that of the parameters of step k - 1
+                Some(tol) => ll_change.is_some_and(|d| d < tol * stats.used.max(1) as f64),
+                None => delta < opts.tol,
+            };
+            if done {
                 converged = true;
                 break;
             }

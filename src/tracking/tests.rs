@@ -135,6 +135,7 @@ fn em_increases_fit_and_converges_on_linear_model() {
         max_iter: 300,
         tol: 5e-3,
         gate: None,
+        ll_tol: None,
     };
     let out = tr.run_em(p, &opts, |_| true).unwrap();
     assert!(out.converged, "{:?}", out.history.last());
@@ -189,4 +190,46 @@ fn gate_rejects_gross_outliers_only() {
     }
     assert_eq!(stats.gated, bad.len());
     assert!(t_len > 30);
+}
+
+#[test]
+fn log_likelihood_equals_the_kalman_innovation_likelihood() {
+    // Σ_t ln N(x_t; H z̄_t + b, H P_t Hᵀ + V_x) of the textbook filter (present entries only)
+    let (em, x, p, n, n_x, t_len) = linear_problem(5);
+    let h = DMatrix::from_row_slice(n_x, n, &em.h);
+    let vz = DMatrix::from_row_slice(n, n, &p.vz);
+    let mut m = DVector::from_column_slice(&p.mu0);
+    let mut v = DMatrix::from_row_slice(n, n, &p.v0);
+    let mut ll = 0.0;
+    for k in 0..t_len {
+        let pp = &v + &vz;
+        let idx: Vec<usize> = (0..n_x).filter(|&j| !x[k * n_x + j].is_nan()).collect();
+        if idx.is_empty() {
+            v = pp;
+            continue;
+        }
+        let hs = DMatrix::from_fn(idx.len(), n, |a, c| h[(idx[a], c)]);
+        let mut s = &hs * &pp * hs.transpose();
+        for (a, &j) in idx.iter().enumerate() {
+            s[(a, a)] += p.vx[j];
+        }
+        let nu = DVector::from_fn(idx.len(), |a, _| {
+            x[k * n_x + idx[a]] - em.b[idx[a]] - (hs.row(a) * &m)[0]
+        });
+        let sinv = s.clone().try_inverse().unwrap();
+        ll -= 0.5
+            * (idx.len() as f64 * (2.0 * std::f64::consts::PI).ln()
+                + s.determinant().ln()
+                + (nu.transpose() * &sinv * &nu)[0]);
+        let gain = &pp * hs.transpose() * &sinv;
+        m = &m + &gain * nu;
+        v = &pp - &gain * &hs * &pp;
+    }
+    let mut tr = Tracker::new(em, x).unwrap();
+    let stats = tr.filter(&p, None).unwrap();
+    assert!(
+        (stats.log_lik - ll).abs() < 1e-8 * (1.0 + ll.abs()),
+        "{} vs {ll}",
+        stats.log_lik
+    );
 }

@@ -20,6 +20,7 @@ from ..state import Normalization, StateMap
 from .result import PoseResult, em_history
 from .track import (
     DEFAULT_GATE,
+    DEFAULT_LL_TOL,
     _first_pose,
     _measurements,
     default_normalization,
@@ -42,6 +43,8 @@ def write_bundle(
     normalization: Normalization | None = None,
     noise: float = 1e-3,
     marker_names=None,
+    stop: str = "loglik",
+    ll_tol: float = DEFAULT_LL_TOL,
 ) -> Path:
     """Write an ``acm-smooth`` input bundle (NPZ, atomically).
 
@@ -53,6 +56,8 @@ def write_bundle(
     pathlib.Path
         The bundle's path.
     """
+    if stop not in ("loglik", "alg13"):
+        raise ValueError(f"stop must be 'loglik' or 'alg13', got {stop!r}")
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
     norm = normalization or default_normalization(rig, skeleton)
     _, t0, r0 = _first_pose(rig, skeleton, det, norm)
@@ -71,6 +76,7 @@ def write_bundle(
         "mu0": mu0,
         "max_iter": np.float64(max_iter),
         "tol": np.float64(tol),
+        "ll_tol": np.float64(ll_tol if stop == "loglik" else np.nan),
         "gate": np.float64(np.nan if g is None else g),
         "noise": np.float64(noise),
         "joint_limits_on": np.float64(joint_limits),

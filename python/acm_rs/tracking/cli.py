@@ -40,7 +40,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     opts = {
         "likelihood": lik, "pcutoff": args.pcutoff, "joint_limits": not args.no_limits,
         "max_iter": args.max_iter, "tol": args.tol, "gate": None if args.no_gate else args.gate,
-        "marker_names": ls.bodyparts,
+        "marker_names": ls.bodyparts, "stop": args.stop, "ll_tol": args.ll_tol,
     }  # fmt: skip
     print(
         f"acm-rs track: {skeleton.name} ({skeleton.n_markers} markers), {len(rig)} cameras, "
@@ -120,6 +120,13 @@ def add_subcommands(sub) -> None:
     p.add_argument("--frames", dest="frame_range", help="frame range START:END (row indices)")
     p.add_argument("--pcutoff", type=float, default=0.9, help="likelihood cutoff (0.9)")
     p.add_argument("--max-iter", type=int, default=100, help="EM iterations at most (100)")
+    p.add_argument(
+        "--stop", choices=["loglik", "alg13"], default="loglik",
+        help="EM convergence rule: the marginal log-likelihood's gain per measurement "
+        "(--ll-tol, default) or Alg. 13's relative parameter change (--tol)",
+    )  # fmt: skip
+    p.add_argument("--ll-tol", type=float, default=1e-3,
+                   help="nats per measurement entry for --stop loglik (1e-3)")  # fmt: skip
     p.add_argument("--tol", type=float, default=0.05, help="EM tolerance of Alg. 13 (0.05)")
     p.add_argument("--gate", type=float, default=0.999, help="outlier gate probability (0.999)")
     p.add_argument("--no-gate", action="store_true", help="use every confident detection")
