@@ -739,6 +739,20 @@ def learn_skeleton(
             x_fit, n2, _, f1, msg = lm(x_fit)
             n_lm += n2
             centre, weight = prior
+            # a free bone far from the proportions (a joint slid along a weakly determined
+            # chain): restart those lengths at the prior's centre, keep it if that fits better
+            nsk = centre.size
+            ratio = x_fit[:nsk] / np.where(centre > 0, centre, 1.0)
+            far = (weight > 0) & (np.abs(np.log(np.abs(ratio) + 1e-300)) > np.log(1.5))
+            if far.any():
+                for reset in (far, weight > 0):  # the far bones, or every free bone
+                    x_try = x_fit.copy()
+                    x_try[:nsk][reset] = centre[reset]
+                    x_try, n2, _, f_try, msg_try = lm(np.clip(x_try, lo_x, hi_x))
+                    n_lm += n2
+                    if f_try < f1:
+                        x_fit, f1, msg = x_try, f_try, msg_try
+                info["chain_restarts"] = int(far.sum())
             info["length_prior"] = {
                 skeleton.bone_names[b]: float(centre[i] * length_scale)
                 for i, b in enumerate(rb)

@@ -1,0 +1,519 @@
+"""Side-by-side evaluation against anipose (issue 12, item 7).
+
+The peer is aniposelib's ``CameraGroup.triangulate_optim`` (what a careful anipose user runs:
+likelihood cutoff, then triangulation refined with temporal smoothness and rigid-length
+constraints); acm-rs is :func:`acm_rs.track` given the true skeleton. Both see the SAME
+synthetic DeepLabCut-like detections of a synthetic individual rat (4 cameras, 1280x1024),
+and both are scored against the ground truth of ``Skeleton.forward(t, r)``:
+
+* marker error: the peer's triangulated 3D markers, acm-rs's ``result.markers``;
+* joint error: acm-rs's ``result.joints``; anipose has no joints, so the true skeleton is fitted
+  frame by frame to its 3D markers (acm-rs's per-frame fit, ``method="deterministic"``, on the
+  noise-free projections of those markers into the rig; on the true markers this returns the
+  true joints to < 1e-6 mm). Its time is reported apart from the peer's;
+* 95 % interval coverage (acm-rs only): fraction of true joint coordinates within
+  ``+-1.96 * result.joints_std``; EM iterations (acm-rs) and wall times.
+
+Cases (240 frames by default; ``--quick``: 120):
+
+``dlc``      2 px noise, 15 % missing in bursts of 1-20 frames (likelihood < 0.5), 2 % confident
+             outliers (30-150 px off, likelihood 0.95-1);
+``hard``     3 px noise, 38 % missing in bursts, 3 % outliers, camera 1 out for 40 frames;
+``gap``      ``dlc`` plus 40 consecutive frames without any detection;
+``burst``    ``dlc`` detections of a motion that runs 2.5x faster for 25 frames (time warp);
+``mm``       ``dlc`` with the rig and the skeleton in mm (same pixels);
+``squares``  ``dlc`` with the rig and the skeleton in board squares of 6.5 cm (same pixels).
+
+Peer settings: ``scale_smooth=4, scale_length=2`` (issue 12), rigid constraints between every
+pair of markers on the same joint (``skeleton.marker_joints``), and anipose's defaults for the
+rest (``reproj_error_threshold=5``, ``n_deriv_smooth=3``, ``score_threshold=0.8``);
+``init_ransac=True`` is not usable (see ``benches/README.md``). The calibration given to
+anipose is in mm for the cm cases (anipose writes mm), in the case's units otherwise.
+
+Run from the repository root (needs ``pip install aniposelib`` or the ``bench`` extra;
+``--no-peer`` runs acm-rs alone)::
+
+    python benches/compare_anipose.py [--cases dlc hard gap burst mm squares] [--frames 240]
+        [--seed 0] [--quick] [--no-peer] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import acm_rs
+from acm_rs import datasets, models
+from acm_rs.demo import demo_rig
+
+CASES = ("dlc", "hard", "gap", "burst", "mm", "squares")
+SQUARE_CM = 6.5
+#: Peer options: issue 12 for the first two, anipose's DEFAULT_CONFIG for the others.
+PEER_OPTIONS = {
+    "scale_smooth": 4,
+    "scale_length": 2,
+    "reproj_error_threshold": 5,
+    "n_deriv_smooth": 3,
+}
+PEER_SCORE_THRESHOLD = 0.8  # anipose's triangulation.score_threshold default
+
+
+# -- synthetic cases -------------------------------------------------------------------------
+@dataclass
+class Case:
+    """One synthetic recording with its ground truth (in the case's length units)."""
+
+    name: str
+    description: str
+    rig: acm_rs.CameraRig
+    skeleton: acm_rs.Skeleton
+    detections: np.ndarray  # (C, T, M, 2) px
+    likelihood: np.ndarray  # (C, T, M)
+    joints: np.ndarray  # (T, J, 3) truth
+    markers: np.ndarray  # (T, M, 3) truth
+    mm_per_unit: float
+    cm_skeleton: acm_rs.Skeleton  # the same animal in cm (for the peer's skeleton fit)
+    cm_rig: acm_rs.CameraRig
+    window: tuple[str, np.ndarray] | None = None  # (label, frame mask) to report apart
+    notes: list[str] = field(default_factory=list)
+
+
+def bursty_detections(
+    rig: acm_rs.CameraRig,
+    skeleton: acm_rs.Skeleton,
+    t: np.ndarray,
+    r: np.ndarray,
+    noise_px: float,
+    missing: float,
+    outliers: float,
+    seed: int,
+    max_burst: int = 20,
+) -> tuple[np.ndarray, np.ndarray]:
+    """DeepLabCut-like detections: :func:`acm_rs.datasets.dlc_like_detections` for the noise
+    and the confident outliers, then occlusion bursts of 1..``max_burst`` frames (uniform) per
+    camera and marker until a fraction ``missing`` is covered; their likelihood is < 0.5 (the
+    pixel guess stays, as DeepLabCut reports one)."""
+    det, lik = datasets.dlc_like_detections(
+        rig, skeleton, t, r, noise_px=noise_px, missing=0.0, outliers=outliers, seed=seed
+    )
+    rng = np.random.default_rng(seed + 1000)
+    n_cams, n_frames, n_markers = lik.shape
+    hidden = np.zeros(lik.shape, bool)
+    need = int(round(missing * n_frames))
+    for c in range(n_cams):
+        for m in range(n_markers):
+            row = hidden[c, :, m]
+            for _ in range(100 * n_frames):
+                left = need - int(row.sum())
+                if left <= 0:
+                    break
+                length = min(int(rng.integers(1, max_burst + 1)), left)
+                start = int(rng.integers(0, n_frames - length + 1))
+                # separate bursts (one visible frame between them) while there is room
+                if not row[max(start - 1, 0) : start + length + 1].any():
+                    row[start : start + length] = True
+    lik[hidden] = rng.uniform(0.0, 0.5, int(hidden.sum()))
+    return det, lik
+
+
+def warped_motion(
+    skeleton: acm_rs.Skeleton,
+    n_frames: int,
+    seed: int,
+    start: int,
+    length: int = 25,
+    factor: float = 2.5,
+    fine: int = 10,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``smooth_motion`` whose clock runs ``factor`` times faster for ``length`` frames from
+    ``start``. Sampled from a ``fine`` times denser copy (``speed=1/fine`` gives the same
+    trajectory: every period scales with the sampling), so the warp needs no interpolation."""
+    steps = np.full(n_frames, fine)
+    steps[0] = 0
+    steps[start + 1 : start + 1 + length] = round(factor * fine)
+    idx = np.cumsum(steps)
+    t, r = datasets.smooth_motion(skeleton, int(idx[-1]) + 1, seed=seed, speed=1.0 / fine)
+    return t[idx], r[idx]
+
+
+def unit_copy(skeleton: acm_rs.Skeleton, units: str, factor: float) -> acm_rs.Skeleton:
+    """The same animal declared in ``units``, lengths and offsets times ``factor``."""
+    sk = acm_rs.Skeleton.from_dict(skeleton.to_dict() | {"units": units})
+    return sk.with_parameters(sk.bone_lengths * factor, sk.marker_offsets * factor)
+
+
+def make_case(name: str, n_frames: int, seed: int) -> Case:
+    """Build one case (``dlc``, ``gap``, ``mm`` and ``squares`` share the animal, the motion
+    and the detections: only the missing frames or the units differ)."""
+    sk = datasets.individual_skeleton(models.rat(), seed=seed + 1)
+    rig = demo_rig()
+    frames = np.arange(n_frames)
+    window = None
+    notes: list[str] = []
+    if name == "burst":
+        start = int(0.6 * n_frames)
+        length = min(25, n_frames // 6)
+        t, r = warped_motion(sk, n_frames, seed + 2, start, length)
+        window = ("burst frames", (frames > start) & (frames <= start + length))
+    else:
+        t, r = datasets.smooth_motion(sk, n_frames, seed=seed + 2)
+    if name == "hard":
+        det, lik = bursty_detections(rig, sk, t, r, 3.0, 0.38, 0.03, seed + 4)
+        out = (frames >= int(0.25 * n_frames)) & (frames < int(0.25 * n_frames) + n_frames // 6)
+        det[1, out] = np.nan
+        lik[1, out] = 0.0
+        window = (f"camera 1 out ({out.sum()} frames)", out)
+        desc = "3 px noise, {miss} missing in bursts of 1-20 frames, 3 % confident outliers"
+    else:
+        det, lik = bursty_detections(rig, sk, t, r, 2.0, 0.15, 0.02, seed + 3)
+        desc = "2 px noise, {miss} missing in bursts of 1-20 frames, 2 % confident outliers"
+    if name == "gap":
+        gap = (frames >= int(0.42 * n_frames)) & (frames < int(0.42 * n_frames) + n_frames // 6)
+        det[:, gap] = np.nan
+        lik[:, gap] = 0.0
+        window = (f"gap frames ({gap.sum()} without detections)", gap)
+    joints, markers = sk.forward(t, r)
+    if name == "burst":
+        speed = np.linalg.norm(np.diff(markers, axis=0), axis=-1).mean(axis=1)
+        ratio = speed[window[1][1:]].mean() / np.median(speed)
+        notes.append(f"marker speed in the burst: {ratio:.2f} x the median speed")
+    missing = np.mean(lik < 0.9)
+    desc = desc.format(miss=f"{100 * missing:.1f} %")
+    case = Case(
+        name, desc, rig, sk, det, lik, joints, markers, 10.0, sk, rig, window, notes
+    )  # units: cm
+    if name == "mm":
+        case.skeleton, case.rig = unit_copy(sk, "mm", 10.0), rig.scaled(10.0)
+        case.joints, case.markers, case.mm_per_unit = joints * 10, markers * 10, 1.0
+        case.description += "; rig and skeleton in mm"
+    elif name == "squares":
+        f = 1.0 / SQUARE_CM
+        case.skeleton, case.rig = unit_copy(sk, "squares", f), rig.scaled(f)
+        case.joints, case.markers, case.mm_per_unit = joints * f, markers * f, 10 * SQUARE_CM
+        case.description += f"; rig and skeleton in board squares of {SQUARE_CM} cm"
+    return case
+
+
+# -- metrics ---------------------------------------------------------------------------------
+def stats(err_mm: np.ndarray) -> dict:
+    """Median / p95 / max of an error array (mm), NaN entries counted apart."""
+    ok = np.isfinite(err_mm)
+    if not ok.any():
+        return {"median": np.nan, "p95": np.nan, "max": np.nan, "n_nan": int(err_mm.size)}
+    e = err_mm[ok]
+    return {
+        "median": float(np.median(e)),
+        "p95": float(np.percentile(e, 95)),
+        "max": float(e.max()),
+        "n_nan": int((~ok).sum()),
+    }
+
+
+def errors(case: Case, markers: np.ndarray, joints: np.ndarray | None) -> dict:
+    """Marker and joint errors (mm) of estimates in the case's units."""
+    out = {"marker": np.linalg.norm(markers - case.markers, axis=-1) * case.mm_per_unit}
+    if joints is not None:
+        out["joint"] = np.linalg.norm(joints - case.joints, axis=-1) * case.mm_per_unit
+    return out
+
+
+def summarise(case: Case, err: dict, **extra) -> dict:
+    row = {f"{k}_error_mm": stats(v) for k, v in err.items()}
+    if case.window is not None and "joint" in err:
+        row["window"] = {
+            "label": case.window[0],
+            "joint_error_mm": stats(err["joint"][case.window[1]]),
+        }
+    return row | extra
+
+
+# -- the two methods -------------------------------------------------------------------------
+def run_acm(case: Case) -> dict:
+    """acm_rs.track with the true skeleton and default options."""
+    kwargs = {}
+    refused = None
+    t0 = time.perf_counter()
+    try:
+        res = acm_rs.track(
+            case.rig, case.skeleton, case.detections, likelihood=case.likelihood, progress=False
+        )
+    except ValueError as exc:
+        # A unit acm-rs does not know: report it, then use the documented way to give the
+        # sec. 3.3 constants explicitly (c_t = 50 cm in the model's unit).
+        refused = str(exc)
+        sizes = [cam.size for cam in case.rig]
+        norm = acm_rs.Normalization.for_units("cm", sizes)
+        cm_per_unit = case.mm_per_unit / 10.0
+        kwargs["normalization"] = dataclasses.replace(norm, translation=50.0 / cm_per_unit)
+        t0 = time.perf_counter()
+        res = acm_rs.track(
+            case.rig,
+            case.skeleton,
+            case.detections,
+            likelihood=case.likelihood,
+            progress=False,
+            **kwargs,
+        )
+    wall = time.perf_counter() - t0
+    err = errors(case, res.markers, res.joints)
+    inside = np.abs(res.joints - case.joints) <= 1.96 * res.joints_std
+    row = summarise(
+        case,
+        err,
+        coverage95=float(inside.mean()),
+        em_iterations=len(res.em_history),
+        converged=bool(res.info.get("converged")),
+        wall_s=wall,
+        gated=int((np.asarray(res.info.get("status")) == 2).sum()),
+    )
+    if case.window is not None:
+        row["window"]["coverage95"] = float(inside[case.window[1]].mean())
+    if refused is not None:
+        row["refused"] = refused
+        row["normalization"] = "explicit: translation = 50 cm in the model's unit"
+    return row
+
+
+def anipose_group(rig: acm_rs.CameraRig):
+    from aniposelib.cameras import Camera, CameraGroup
+
+    return CameraGroup(
+        [
+            Camera(matrix=c.matrix, dist=c.dist, size=c.size, rvec=c.rvec, tvec=c.tvec, name=c.name)
+            for c in rig
+        ]
+    )
+
+
+def rigid_pairs(skeleton: acm_rs.Skeleton) -> list[list[int]]:
+    """Every pair of markers attached to the same joint (constant distance)."""
+    groups: dict[int, list[int]] = {}
+    for m, j in enumerate(skeleton.marker_joints):
+        groups.setdefault(int(j), []).append(m)
+    return [[a, b] for g in groups.values() for i, a in enumerate(g) for b in g[i + 1 :]]
+
+
+def peer_rig(case: Case) -> tuple[acm_rs.CameraRig, float]:
+    """The calibration anipose gets and its mm per unit (mm for the cm cases)."""
+    if case.mm_per_unit == 10.0:
+        return case.rig.scaled(10.0), 1.0
+    return case.rig, case.mm_per_unit
+
+
+def run_peer(case: Case) -> dict:
+    """anipose: likelihood cutoff, then CameraGroup.triangulate_optim."""
+    rig, mm = peer_rig(case)
+    group = anipose_group(rig)
+    points = case.detections.copy()
+    points[case.likelihood < PEER_SCORE_THRESHOLD] = np.nan
+    t0 = time.perf_counter()
+    p3d = group.triangulate_optim(
+        points, init_ransac=False, constraints=rigid_pairs(case.skeleton), **PEER_OPTIONS
+    )
+    wall = time.perf_counter() - t0
+    markers_mm = np.asarray(p3d, float) * mm
+    # Joints: fit the true skeleton (cm) frame by frame to the peer's markers.
+    markers_cm = markers_mm / 10.0
+    t1 = time.perf_counter()
+    fit = acm_rs.track(
+        case.cm_rig,
+        case.cm_skeleton,
+        case.cm_rig.project(markers_cm),
+        method="deterministic",
+        progress=False,
+    )
+    fit_s = time.perf_counter() - t1
+    unit = 10.0 / case.mm_per_unit  # cm -> case units
+    err = errors(case, markers_mm / case.mm_per_unit, fit.joints * unit)
+    err_fit = errors(case, fit.markers * unit, None)["marker"]
+    return summarise(
+        case,
+        err,
+        wall_s=wall,
+        skeleton_fit_s=fit_s,
+        fitted_marker_error_mm=stats(err_fit),
+        calibration_units={1.0: "mm", 10.0: "cm"}.get(mm, f"{mm:g} mm"),
+    )
+
+
+def warm_up_peer(case: Case) -> float:
+    """JAX and numba compile on first use; do it once on 20 frames, outside the timings."""
+    rig, _ = peer_rig(case)
+    group = anipose_group(rig)
+    points = case.detections[:, :20].copy()
+    points[case.likelihood[:, :20] < PEER_SCORE_THRESHOLD] = np.nan
+    t0 = time.perf_counter()
+    group.triangulate_optim(points, constraints=rigid_pairs(case.skeleton), **PEER_OPTIONS)
+    return time.perf_counter() - t0
+
+
+# -- report ----------------------------------------------------------------------------------
+def _fmt(v: float | None, spec: str = ".2f") -> str:
+    return "-" if v is None or not np.isfinite(v) else format(v, spec)
+
+
+def _ratio(a: float | None, b: float | None) -> str:
+    if a is None or b is None or not (np.isfinite(a) and np.isfinite(b)) or b == 0:
+        return "-"
+    return f"{a / b:.2f}"
+
+
+def print_case(case: Case, acm: dict, peer: dict | None) -> None:
+    n_frames = case.joints.shape[0]
+    print(f"\n== {case.name}: {n_frames} frames, {case.description} ==")
+    for note in case.notes:
+        print(f"   {note}")
+    if "refused" in acm:
+        print(f"   acm-rs refused the default: {acm['refused']}")
+        print(f"   -> tracked with {acm['normalization']}")
+    if peer is None:
+        print("   anipose: skipped")
+    print(f"   {'':30s} {'anipose':>10s} {'acm-rs':>10s} {'acm/anipose':>12s}")
+    for what in ("marker", "joint"):
+        for s in ("median", "p95", "max"):
+            a = acm[f"{what}_error_mm"][s]
+            p = peer[f"{what}_error_mm"][s] if peer else None
+            label = f"{what} error {s} (mm)"
+            print(f"   {label:30s} {_fmt(p):>10s} {_fmt(a):>10s} {_ratio(a, p):>12s}")
+    if "window" in acm:
+        w = acm["window"]
+        for s in ("median", "max"):
+            a = w["joint_error_mm"][s]
+            p = peer["window"]["joint_error_mm"][s] if peer else None
+            label = f"  {w['label'][:18]}: joint {s}"
+            print(f"   {label:30s} {_fmt(p):>10s} {_fmt(a):>10s} {_ratio(a, p):>12s}")
+    cov = f"{100 * acm['coverage95']:.1f} %"
+    print(f"   {'95 % coverage of joints':30s} {'-':>10s} {cov:>10s}")
+    if "window" in acm:
+        cov = f"{100 * acm['window']['coverage95']:.1f} %"
+        print(f"   {'  ... in the window':30s} {'-':>10s} {cov:>10s}")
+    em = f"{acm['em_iterations']}{'' if acm['converged'] else ' (max)'}"
+    print(f"   {'EM iterations':30s} {'-':>10s} {em:>10s}")
+    p = peer["wall_s"] if peer else None
+    ratio = _ratio(acm["wall_s"], p)
+    print(f"   {'wall time (s)':30s} {_fmt(p, '.1f'):>10s} {acm['wall_s']:>10.1f} {ratio:>12s}")
+    if peer:
+        fm = peer["fitted_marker_error_mm"]
+        print(
+            f"   anipose joints: true skeleton fitted per frame in {peer['skeleton_fit_s']:.1f} s"
+            f" (its markers: median {fm['median']:.2f}, p95 {fm['p95']:.2f}, max "
+            f"{fm['max']:.2f} mm); anipose calibration in {peer['calibration_units']}"
+        )
+        n_nan = peer["marker_error_mm"]["n_nan"]
+        if n_nan:
+            print(f"   anipose left {n_nan} marker positions NaN (not counted above)")
+
+
+def print_summary(rows: list[tuple[Case, dict, dict | None]]) -> None:
+    print("\n== summary (errors in mm: anipose / acm-rs, ratio acm-rs/anipose) ==")
+    head = (
+        f"{'case':8s} {'marker median':>20s} {'joint median':>20s} {'joint p95':>20s} "
+        f"{'joint max':>22s} {'cover':>6s} {'EM':>4s} {'wall s':>16s}"
+    )
+    print(head)
+
+    def cell(what: str, s: str, acm: dict, peer: dict | None, width: int = 20) -> str:
+        a = acm[f"{what}_error_mm"][s]
+        p = peer[f"{what}_error_mm"][s] if peer else None
+        return f"{_fmt(p)}/{_fmt(a)} ({_ratio(a, p)})".rjust(width)
+
+    for case, acm, peer in rows:
+        wall = f"{_fmt(peer['wall_s'] if peer else None, '.1f')}/{acm['wall_s']:.1f}"
+        em = f"{acm['em_iterations']}{'' if acm['converged'] else '!'}"
+        print(
+            f"{case.name:8s} {cell('marker', 'median', acm, peer)} "
+            f"{cell('joint', 'median', acm, peer)} {cell('joint', 'p95', acm, peer)} "
+            f"{cell('joint', 'max', acm, peer, 22)} {100 * acm['coverage95']:5.1f}% {em:>4s} "
+            f"{wall:>16s}"
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
+    ap.add_argument("--frames", type=int, default=240)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true", help="120 frames (unless --frames is given)")
+    ap.add_argument("--no-peer", action="store_true", help="acm-rs only")
+    ap.add_argument("--json", help="write every number to this file")
+    args = ap.parse_args(argv)
+    n_frames = args.frames
+    if args.quick and "--frames" not in (argv if argv is not None else sys.argv):
+        n_frames = 120
+    if n_frames < 60:
+        ap.error("--frames must be >= 60")
+
+    peer_ok = not args.no_peer
+    peer_version = None
+    if peer_ok:
+        try:
+            import aniposelib
+
+            peer_version = getattr(aniposelib, "__version__", None)
+            if peer_version is None:
+                from importlib.metadata import version
+
+                peer_version = version("aniposelib")
+        except ImportError as exc:
+            print(f"anipose skipped: cannot import aniposelib ({exc}); pip install aniposelib")
+            peer_ok = False
+    print(
+        f"acm-rs {acm_rs.__version__} vs aniposelib {peer_version or '(skipped)'}; "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, Python "
+        f"{platform.python_version()}, numpy {np.__version__}; {n_frames} frames, seed "
+        f"{args.seed}"
+    )
+    if peer_ok:
+        print(f"anipose options: {PEER_OPTIONS}, score_threshold {PEER_SCORE_THRESHOLD}")
+
+    rows = []
+    report: dict = {
+        "frames": n_frames,
+        "seed": args.seed,
+        "aniposelib": peer_version,
+        "acm_rs": acm_rs.__version__,
+        "peer_options": PEER_OPTIONS,
+        "cases": {},
+    }
+    warmed = False
+    for name in args.cases:
+        case = make_case(name, n_frames, args.seed)
+        peer = None
+        if peer_ok:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # numba's object-mode deprecation warnings
+                if not warmed:
+                    report["peer_warm_up_s"] = warm = warm_up_peer(case)
+                    print(f"anipose warm-up (JAX + numba compilation): {warm:.1f} s")
+                    warmed = True
+                peer = run_peer(case)
+        acm = run_acm(case)
+        print_case(case, acm, peer)
+        rows.append((case, acm, peer))
+        report["cases"][name] = {
+            "description": case.description,
+            "notes": case.notes,
+            "acm_rs": acm,
+            "anipose": peer,
+        }
+    print_summary(rows)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(report, fh, indent=1, default=float)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
