@@ -225,3 +225,32 @@ def test_wrong_camera_order_and_units_are_refused(session):
         pytest.raises(ValueError, match=r"calibration in mm while the model is in cm"),
     ):
         acm_rs.track(rig.scaled(10.0), sk, short, likelihood=lik[:, :30], progress=False)
+
+
+@pytest.mark.parametrize("factor, units", [(10.0, "mm"), (1 / 6.5, "")])
+def test_results_do_not_depend_on_the_world_unit(session, factor, units):
+    """The same detections with rig and skeleton in mm, or in 6.5 cm board squares (no unit
+    declared), give the same joints in their units (issue 12 item 1: c_t follows the rig)."""
+    sk, rig, _, _, det, lik, _, _ = session
+    det, lik = det[:, :60], lik[:, :60]
+    ref = acm_rs.track(rig, sk, det, likelihood=lik, progress=False, max_iter=8)
+    doc = sk.to_dict() | {"units": units}
+    scaled = acm_rs.Skeleton.from_dict(doc)
+    scaled = scaled.with_parameters(scaled.bone_lengths * factor, scaled.marker_offsets * factor)
+    res = acm_rs.track(rig.scaled(factor), scaled, det, likelihood=lik, progress=False,
+                       max_iter=8)  # fmt: skip
+    assert len(res.em_history) == len(ref.em_history)
+    err = np.linalg.norm(res.joints / factor - ref.joints, axis=-1)
+    scale = np.linalg.norm(ref.joints - ref.joints.mean(axis=(0, 1)), axis=-1).mean()
+    assert err.max() < 1e-3 * scale  # < 0.1 % of the animal's size
+    np.testing.assert_allclose(res.joints_std / factor, ref.joints_std, rtol=1e-3, atol=1e-6)
+
+
+def test_declared_units_are_recorded_and_checked(session, tmp_path):
+    sk, rig, _, _, det, lik, _, _ = session
+    assert rig.units == "cm"
+    rig.scaled(10.0, units="mm").save(tmp_path / "calibration.toml")
+    back = acm_rs.CameraRig.load(tmp_path / "calibration.toml")
+    assert back.units == "mm"
+    with pytest.raises(ValueError, match=r"rig.scaled\(0.1, units='cm'\)"):
+        acm_rs.track(back, sk, det[:, :20], likelihood=lik[:, :20], progress=False)

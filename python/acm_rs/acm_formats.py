@@ -869,7 +869,7 @@ def arena_rig(
         r2 = rot @ coord
         t2 = scale_factor * (rot @ origin + cam.tvec)
         cams.append(Camera(cam.matrix, cam.dist, rodrigues_inverse(r2), t2, cam.size, cam.name))
-    return CameraRig(cams)
+    return CameraRig(cams, units="cm")  # the authors' arena frame in cm
 
 
 # -- outputs --------------------------------------------------------------------------------------

@@ -224,9 +224,13 @@ class CameraRig:
     ----------
     cameras : iterable of Camera
         At least one camera; names (when given) must be unique.
+    units : str
+        Length unit of the world frame and translations ("mm", "cm", "m"; "" = not
+        declared). Recorded in ``calibration.toml`` (``[metadata] units``) and checked
+        against the skeleton's units by learning and tracking.
     """
 
-    def __init__(self, cameras: Iterable[Camera]) -> None:
+    def __init__(self, cameras: Iterable[Camera], units: str = "") -> None:
         cams = list(cameras)
         if not cams:
             raise ValueError("a camera rig needs at least one camera")
@@ -237,6 +241,7 @@ class CameraRig:
         if len(set(names)) != len(names):
             raise ValueError(f"camera names must be unique, got {names}")
         self.cameras: list[Camera] = cams
+        self.units = str(units or "")
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -265,18 +270,25 @@ class CameraRig:
         """Return a new rig with the given (n_cams, 15) parameters (sizes and names kept)."""
         p = as_float_array(params, "params", (len(self), 15))
         return CameraRig(
-            Camera.from_params(row, c.size, c.name) for row, c in zip(p, self.cameras, strict=True)
+            (
+                Camera.from_params(row, c.size, c.name)
+                for row, c in zip(p, self.cameras, strict=True)
+            ),
+            self.units,
         )
 
-    def scaled(self, factor: float) -> CameraRig:
+    def scaled(self, factor: float, units: str | None = None) -> CameraRig:
         """The same rig in another length unit: translations times ``factor`` (e.g. 0.1 for
-        a calibration in mm used with a model in cm, 6.5 for board squares of 6.5 cm)."""
+        a calibration in mm used with a model in cm, 6.5 for board squares of 6.5 cm), with
+        ``units`` the new unit (default: undeclared unless ``factor`` is 1)."""
         f = float(factor)
         if not (np.isfinite(f) and f > 0):
             raise ValueError(f"scale factor must be finite and > 0, got {factor}")
         p = self.get_params().copy()
         p[:, 3:6] *= f  # [r (3), t (3), fx, fy, cx, cy, k1, k2, p1, p2, k3]
-        return self.set_params(p)
+        out = self.set_params(p)
+        out.units = units if units is not None else (self.units if f == 1.0 else "")
+        return out
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Project world points into every camera.
@@ -306,8 +318,11 @@ class CameraRig:
             if not table["name"]:
                 table["name"] = f"cam_{i}"
             doc[f"cam_{i}"] = table
-        if metadata:
-            doc["metadata"] = dict(metadata)
+        meta = dict(metadata or {})
+        if self.units:
+            meta.setdefault("units", self.units)
+        if meta:
+            doc["metadata"] = meta
         with atomic_write(path) as fh:
             fh.write(_toml.dumps(doc))
 
@@ -348,7 +363,9 @@ class CameraRig:
             if missing:
                 raise ValueError(f"{p}: no camera named {missing}; cameras: {list(by_name)}")
             cams = [by_name[n] for n in names]
-        return cls(cams)
+        meta = doc.get("metadata", {})
+        units = meta.get("units", "") if isinstance(meta, dict) else ""
+        return cls(cams, units=str(units))
 
     def __repr__(self) -> str:
         return f"CameraRig({len(self)} cameras: {self.names})"

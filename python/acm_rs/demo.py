@@ -51,7 +51,7 @@ def demo_rig(distance: float = 60.0, height: float = 45.0) -> CameraRig:
         rvec, tvec = look_at(center, np.array([0.0, 0.0, 3.0]), np.array([0.0, 0.0, 1.0]))
         matrix = np.array([[1400.0, 0.0, 640.0], [0.0, 1400.0, 512.0], [0.0, 0.0, 1.0]])
         cams.append(Camera(matrix, [-0.15, 0.08], rvec, tvec, (1280, 1024), f"cam{i}"))
-    return CameraRig(cams)
+    return CameraRig(cams, units="cm")
 
 
 def demo_pose(skeleton: Skeleton, heading: float = 0.6) -> tuple[np.ndarray, np.ndarray]:

@@ -560,9 +560,10 @@ def learn_skeleton(
     pcutoff : float
         Likelihood cutoff in [0, 1] (the authors' 0.9).
     normalization : Normalization, optional
-        Sec. 3.3 constants (default: the paper's in the skeleton's ``units``, pixel scales
-        from the rig's image sizes). Lengths and offsets are scaled by
-        ``normalization.translation / 50`` in the optimiser.
+        Sec. 3.3 constants (default: :meth:`Normalization.for_rig`, ``c_t`` from the rig's
+        size, so results do not depend on the world unit; pixel scales from the image
+        sizes). Lengths and offsets are scaled by ``normalization.translation / 50`` in the
+        optimiser.
     sigma_factor : float
         Width of the bone-length priors in standard deviations (authors: 10).
     options : dict, optional
@@ -597,7 +598,9 @@ def learn_skeleton(
         Wrong shapes, labels for unknown markers, a frame with fewer than 3 labelled points,
         infinite labels, or labels for a different number of cameras.
     """
-    norm = normalization or Normalization.for_units(skeleton.units, [c.size for c in rig])
+    norm = normalization or Normalization.for_rig(
+        np.array([c.center for c in rig]), skeleton.units, [c.size for c in rig]
+    )
     labels = mask_by_likelihood(labels, likelihood, pcutoff)
     lab = _labels_in_skeleton_order(labels, skeleton, rig, marker_names)
     n_frames = lab.shape[1]
@@ -619,6 +622,7 @@ def learn_skeleton(
     bp, mp = _pairs(skeleton, symmetric)
     info: dict = {"stages": {}}
 
+    check_units(rig, skeleton)
     info["scale_ratio"] = check_scale(rig, skeleton, lab)
     # (0) size: the generic model scaled to the animal in the labels (a 72 g and a 350 g rat
     # differ by ~1.7x in every length; starting from the wrong size ends in a wrong minimum)
@@ -803,6 +807,24 @@ def _frame_rms(problem: _native.NativeLearning, x: np.ndarray, lab_fcm: np.ndarr
     err = np.sum((projected - lab_fcm) ** 2, axis=-1)
     with np.errstate(invalid="ignore"):
         return np.sqrt(np.nanmean(np.where(np.isfinite(err), err, np.nan), axis=(1, 2)))
+
+
+def check_units(rig: CameraRig, skeleton: Skeleton) -> None:
+    """Refuse a rig and a skeleton that declare different length units, saying how to
+    convert (undeclared units are checked from the data by :func:`check_scale`)."""
+    from .state import UNIT_IN_CM
+
+    a, b = rig.units, skeleton.units
+    if not a or not b or a == b:
+        return
+    if a in UNIT_IN_CM and b in UNIT_IN_CM:
+        f = UNIT_IN_CM[a] / UNIT_IN_CM[b]
+        fix = f"rig.scaled({f:g}, units={b!r}) converts the calibration to {b}"
+    else:
+        fix = "convert one of them"
+    raise ValueError(
+        f"the calibration is in {a!r} but the skeleton {skeleton.name!r} in {b!r}: {fix}"
+    )
 
 
 def check_scale(

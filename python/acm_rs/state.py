@@ -81,6 +81,35 @@ class Normalization:
         return cls(translation=translation)
 
     @classmethod
+    def for_rig(
+        cls,
+        centres: np.ndarray,
+        units: str = "",
+        image_sizes: Sequence[tuple[float, float]] = (),
+    ) -> Normalization:
+        """Unit-free constants: ``c_t`` = 5/6 of the median distance of the camera centres
+        from their centroid (50 for the demo rig in cm, whose cameras stand 60 cm from its
+        centre: the paper's value for an arena of that size), so scaling the rig and the model
+        by any factor scales ``c_t`` with them and leaves every result unchanged (in their
+        units). With fewer than two distinct camera centres: :meth:`for_units`.
+
+        Parameters
+        ----------
+        centres : array_like, shape (n_cams, 3)
+            Camera centres in world units.
+        units : str
+            The model's length unit (only for the fallback).
+        image_sizes : sequence of (width, height)
+            Pixel scales ``c_1, c_2`` are half the largest.
+        """
+        c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+        d = np.linalg.norm(c - c.mean(axis=0), axis=1) if len(c) else np.zeros(0)
+        base = cls.for_units(units, image_sizes)
+        if len(c) < 2 or not np.all(np.isfinite(d)) or float(np.median(d)) <= 0:
+            return base
+        return cls(translation=float(np.median(d)) * 5.0 / 6.0, pixel=base.pixel)
+
+    @classmethod
     def from_image_size(
         cls, width: float, height: float, translation: float = 50.0
     ) -> Normalization:

@@ -93,6 +93,7 @@ def load_acm_calibration(
         rig = CameraRig(
             Camera(c.matrix, c.dist, c.rvec, c.tvec * scale_factor, c.size, c.name) for c in rig
         )
+    rig.units = "cm"  # the authors' arena frame: calibration units x scale_factor = cm
     return rig
 
 

@@ -79,4 +79,4 @@ def transform_rig(rig: CameraRig, rot: np.ndarray, origin: np.ndarray) -> Camera
                 cam.name,
             )  # fmt: skip
         )
-    return CameraRig(cams)
+    return CameraRig(cams, rig.units)

@@ -17,7 +17,7 @@ import numpy as np
 from .. import _native
 from ..camera import CameraRig
 from ..labels import labels_in_skeleton_order, mask_by_likelihood
-from ..learning import _pose_bounds, _to_state, check_scale, initial_poses
+from ..learning import _pose_bounds, _to_state, check_scale, check_units, initial_poses
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
 from .result import PoseResult
@@ -34,12 +34,15 @@ DEFAULT_LL_TOL = 1e-3
 
 
 def default_normalization(rig: CameraRig, skeleton: Skeleton) -> Normalization:
-    """Sec. 3.3 constants for a rig and skeleton (:meth:`Normalization.for_units`).
+    """Sec. 3.3 constants for a rig and skeleton (:meth:`Normalization.for_rig`).
 
     ``c_1, c_2`` are half the largest image size in the rig (640, 512 for 1280x1024 sensors,
-    the paper's value when sizes are unknown); ``c_t`` is 50 cm in the skeleton's units.
+    the paper's value when sizes are unknown); ``c_t`` follows the rig's size (5/6 of the
+    median camera distance from the rig's centre: 50 cm for a rig whose cameras stand 60 cm
+    from it), so results do not depend on the world unit.
     """
-    return Normalization.for_units(skeleton.units, [cam.size for cam in rig])
+    centres = np.array([cam.center for cam in rig])
+    return Normalization.for_rig(centres, skeleton.units, [cam.size for cam in rig])
 
 
 def _norm_dict(norm: Normalization) -> dict:
@@ -333,7 +336,9 @@ def track(
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
     n_frames = det.shape[1]
     norm = normalization or default_normalization(rig, skeleton)
-    # sanity checks that speak: camera order, then units (both refuse with the fix)
+    # sanity checks that speak: declared units, camera order, then units from the data
+    # (each refuses with the fix)
+    check_units(rig, skeleton)
     fit_px = check_camera_order(rig, skeleton, det, norm)
     check_scale(rig, skeleton, det)
     sm = StateMap(skeleton, norm, joint_limits)
