@@ -254,3 +254,20 @@ def test_declared_units_are_recorded_and_checked(session, tmp_path):
     assert back.units == "mm"
     with pytest.raises(ValueError, match=r"rig.scaled\(0.1, units='cm'\)"):
         acm_rs.track(back, sk, det[:, :20], likelihood=lik[:, :20], progress=False)
+
+
+def test_student_t_noise_model(session):
+    """The Student-t measurement model (EM weights) tracks as well as the Gaussian with the
+    gate, without any gate, and learns a measurement SD near the detections' 2 px."""
+    sk, rig, _, _, det, lik, truth, _ = session
+    res = acm_rs.track(rig, sk, det, likelihood=lik, progress=False, noise_model="student",
+                       gate=None)  # fmt: skip
+    ref = acm_rs.track(rig, sk, det, likelihood=lik, progress=False, gate=None)
+    e, e_ref = joint_errors(res, truth), joint_errors(ref, truth)
+    assert np.median(e) < 0.8 * np.median(e_ref)  # outliers no longer inflate V_x
+    sd_px = np.sqrt(np.median(res.info["params"]["Vx_diag"])) * 640.0
+    sd_ref = np.sqrt(np.median(ref.info["params"]["Vx_diag"])) * 640.0
+    assert 1.5 < sd_px < 3.0 < sd_ref
+    assert res.info["noise_model"] == "student"
+    with pytest.raises(ValueError, match="noise_model"):
+        acm_rs.track(rig, sk, det, likelihood=lik, progress=False, noise_model="cauchy")

@@ -100,7 +100,7 @@ impl PyTracker {
     /// called after every iteration with the GIL held and may return `False` to stop; Ctrl-C
     /// stops the run between iterations (the result is returned with `interrupted = True`).
     /// Returns `(params dict, history list of dicts, converged, interrupted)`.
-    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None, ll_tol=None))]
+    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None, ll_tol=None, dof=None))]
     #[allow(clippy::too_many_arguments)]
     fn run_em<'py>(
         &mut self,
@@ -114,6 +114,7 @@ impl PyTracker {
         gate: Option<f64>,
         callback: Option<Py<PyAny>>,
         ll_tol: Option<f64>,
+        dof: Option<f64>,
     ) -> PyResult<EmReturn<'py>> {
         let init = self.params(&(mu0, v0, vz, vx))?;
         let opts = EmOptions {
@@ -121,6 +122,7 @@ impl PyTracker {
             tol,
             gate,
             ll_tol,
+            dof,
         };
         let mut py_err: Option<PyErr> = None;
         let inner = &mut self.inner;

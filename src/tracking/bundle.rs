@@ -155,6 +155,7 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
         tol: scalar(m, "tol", 0.05),
         gate: (gate.is_finite() && gate > 0.0).then_some(gate),
         ll_tol: Some(scalar(m, "ll_tol", f64::NAN)).filter(|v| v.is_finite() && *v > 0.0),
+        dof: Some(scalar(m, "dof", f64::NAN)).filter(|v| v.is_finite() && *v > 0.0),
     };
     let init = Params::initial(mu0, model.n_meas(), noise);
     Ok(Bundle {

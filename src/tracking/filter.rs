@@ -115,6 +115,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
     frame: usize,
     ws: &mut Workspace,
     mask: &mut [u8],
+    weights: &[f64],
     mu_out: &mut [f64],
     v_out: &mut [f64],
     stats: &mut FilterStats,
@@ -161,8 +162,10 @@ pub(crate) fn step<E: Emission + ?Sized>(
             stats.invisible += 1;
         }
     }
+    // Student-t model: entry j has noise V_x,j / w_j (w = 1: the Gaussian model)
+    let vx_eff: Vec<f64> = params.vx.iter().zip(weights).map(|(v, w)| v / w).collect();
     if let Some(g) = gate {
-        apply_gate(em.block(), g, ws, x_t, &params.vx, mask, stats);
+        apply_gate(em.block(), g, ws, x_t, &vx_eff, mask, stats);
     }
     ws.used
         .extend((0..n_x).filter(|&j| mask[j] == status::USED));
@@ -177,7 +180,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
     ws.ytil.clear();
     ws.ytil.resize(m2 * np, 0.0);
     let mut nu = DVector::zeros(np);
-    let scale: Vec<f64> = ws.used.iter().map(|&j| 1.0 / params.vx[j].sqrt()).collect();
+    let scale: Vec<f64> = ws.used.iter().map(|&j| 1.0 / vx_eff[j].sqrt()).collect();
     for (q, &j) in ws.used.iter().enumerate() {
         nu[q] = (x_t[j] - ws.xbar[j]) * scale[q];
     }
@@ -206,7 +209,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
     super::dense::chol_solve_vec(&lm, &mut s);
     // ln N(x; x̄, S) with S = V_x^{1/2} (I + Ỹ Ỹᵀ) V_x^{1/2}: |I + ỸỸᵀ| = |M| (Sylvester),
     // νᵀS⁻¹ν = ν̃ᵀν̃ − bᵀM⁻¹b with b = Ỹᵀν̃ (Woodbury).
-    let log_det = ws.used.iter().map(|&j| params.vx[j].ln()).sum::<f64>()
+    let log_det = ws.used.iter().map(|&j| vx_eff[j].ln()).sum::<f64>()
         + 2.0 * (0..m2).map(|i| lm[(i, i)].ln()).sum::<f64>();
     let maha = nu.norm_squared() - b.dot(&s);
     stats.log_lik -= 0.5 * (np as f64 * (2.0 * std::f64::consts::PI).ln() + log_det + maha);

@@ -96,6 +96,9 @@ pub struct EmOptions {
     pub tol: f64,
     /// Innovation gate (squared Mahalanobis distance per image point), or `None`.
     pub gate: Option<f64>,
+    /// Degrees of freedom of a Student-t measurement model per image point (`None`:
+    /// Gaussian, the paper's model). Outliers get small weights and do not inflate `V_x`.
+    pub dof: Option<f64>,
     /// Stop instead on the marginal log-likelihood: when it changes by less than this many
     /// nats per used measurement entry between iterations (`None`: Alg. 13 with `tol`).
     pub ll_tol: Option<f64>,
@@ -108,6 +111,7 @@ impl Default for EmOptions {
             tol: 0.05,
             gate: None,
             ll_tol: None,
+            dof: None,
         }
     }
 }
@@ -148,6 +152,9 @@ pub struct Tracker<E: Emission> {
     means: Vec<f64>,
     covs: Vec<f64>,
     mask: Vec<u8>,
+    /// Per-entry precision weights of the Student-t measurement model (1 = Gaussian):
+    /// the filter uses `V_x / w` (see [`mstep::m_step_student`]).
+    weights: Vec<f64>,
     acc: nalgebra::DMatrix<f64>,
     stats: FilterStats,
 }
@@ -182,6 +189,7 @@ impl<E: Emission> Tracker<E> {
         Ok(Self {
             em,
             mask: vec![status::MISSING; x.len()],
+            weights: vec![1.0; x.len()],
             x,
             n_frames: t,
             means: vec![0.0; (t + 1) * n],
@@ -246,6 +254,7 @@ impl<E: Emission> Tracker<E> {
                 t,
                 &mut ws,
                 &mut self.mask[t * n_x..(t + 1) * n_x],
+                &self.weights[t * n_x..(t + 1) * n_x],
                 &mut mt[..n],
                 &mut ct[..n * n],
                 &mut stats,
@@ -287,6 +296,11 @@ impl<E: Emission> Tracker<E> {
         )
     }
 
+    /// Per-entry precision weights of the last robust M-step (`T × n_x`; 1 = Gaussian).
+    pub fn weights(&self) -> &[f64] {
+        &self.weights
+    }
+
     /// Alg. 11 followed by a final E-step with the learned parameters (sec. 4.7), so that the
     /// moments afterwards are the smoothed posterior under the returned parameters.
     ///
@@ -307,7 +321,23 @@ impl<E: Emission> Tracker<E> {
         for k in 1..=opts.max_iter {
             let t0 = Instant::now();
             let stats = self.e_step(&params, opts.gate)?;
-            let next = self.m_step(&params)?;
+            let next = match opts.dof {
+                Some(dof) => {
+                    let (next, w) = mstep::m_step_student(
+                        &self.em,
+                        &self.means,
+                        &self.covs,
+                        &self.x,
+                        &self.mask,
+                        &self.acc,
+                        &params,
+                        dof,
+                    )?;
+                    self.weights = w;
+                    next
+                }
+                None => self.m_step(&params)?,
+            };
             let delta = relative_change(&params, &next);
             params = next;
             let it = Iteration {

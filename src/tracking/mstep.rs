@@ -119,3 +119,110 @@ pub fn relative_change(prev: &Params, next: &Params) -> f64 {
     }
     sum / (3 * n + prev.vx.len()) as f64
 }
+
+/// The M-step of a Student-t measurement model (beyond the paper; issue 12): each image point
+/// (a block of `em.block()` entries) of frame `t` has noise `V_x / w_tb` with
+/// `w ~ Gamma(ν/2, ν/2)`, i.e. a Student-t with `ν = dof` degrees of freedom. With the
+/// expected squared residuals `e_tj = E[(x_tj − g_j(z_t))²]` under the smoothed posterior
+/// (sigma points, as eq. 81) and `δ²_tb = Σ_{j∈b} e_tj / V_x,j` (previous `V_x`):
+///
+/// `w_tb = (ν + k) / (ν + δ²_tb)` (k = used entries of the block), and
+/// `V_x,j = Σ_t w_tb e_tj / n_j` (the weighted eq. 81).
+///
+/// `μ0`, `V0` and `V_z` are eqs. 77-79 as in [`m_step`]. Returns the parameters and the
+/// per-entry weights (`T × n_x`, 1 where an entry was not used) for the next E-step.
+///
+/// # Errors
+/// As [`m_step`]; an invalid error for `dof <= 0`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn m_step_student<E: Emission + ?Sized>(
+    em: &E,
+    means: &[f64],
+    covs: &[f64],
+    x: &[f64],
+    mask: &[u8],
+    acc: &DMatrix<f64>,
+    prev: &Params,
+    dof: f64,
+) -> Result<(Params, Vec<f64>)> {
+    if !(dof.is_finite() && dof > 0.0) {
+        return Err(crate::error::AcmError::Invalid(format!(
+            "the Student-t degrees of freedom must be > 0, got {dof}"
+        )));
+    }
+    let n = em.n_state();
+    let n_x = em.n_meas();
+    let k = em.block().max(1);
+    let t_len = x.len() / n_x;
+    // eqs. 77-79 as in `m_step`
+    let mu0 = means[..n].to_vec();
+    let v0 = covs[..n * n].to_vec();
+    let vz: Vec<f64> = acc.iter().map(|v| v / t_len.max(1) as f64).collect();
+    // e_tj for the used entries (NaN elsewhere), frames in parallel
+    let mut e = vec![f64::NAN; t_len * n_x];
+    e.par_chunks_mut(n_x)
+        .enumerate()
+        .try_for_each(|(t, et)| -> Result<()> {
+            let m = &mask[t * n_x..(t + 1) * n_x];
+            if !m.contains(&status::USED) {
+                return Ok(());
+            }
+            let kk = t + 1;
+            let l = cholesky(&covs[kk * n * n..(kk + 1) * n * n], n, &|| {
+                format!("the smoothed state covariance of frame {t}")
+            })?;
+            let mut sigma = vec![0.0; 2 * n * n];
+            let mut g = vec![0.0; 2 * n * n_x];
+            sigma_points(&means[kk * n..(kk + 1) * n], &l, &mut sigma);
+            em.eval_batch(&sigma, &mut g)?;
+            let xt = &x[t * n_x..(t + 1) * n_x];
+            for j in 0..n_x {
+                if m[j] != status::USED {
+                    continue;
+                }
+                let (mut s, mut cnt) = (0.0, 0usize);
+                for i in 0..2 * n {
+                    let v = g[i * n_x + j];
+                    if v.is_finite() {
+                        s += (xt[j] - v) * (xt[j] - v);
+                        cnt += 1;
+                    }
+                }
+                if cnt > 0 {
+                    et[j] = s / cnt as f64;
+                }
+            }
+            Ok(())
+        })?;
+    let mut w = vec![1.0; t_len * n_x];
+    let mut sums = vec![0.0; n_x];
+    let mut counts = vec![0.0; n_x];
+    for t in 0..t_len {
+        for b0 in (0..n_x).step_by(k) {
+            let idx = t * n_x + b0;
+            let used: Vec<usize> = (0..k.min(n_x - b0))
+                .filter(|&a| e[idx + a].is_finite())
+                .collect();
+            if used.is_empty() {
+                continue;
+            }
+            let d2: f64 = used.iter().map(|&a| e[idx + a] / prev.vx[b0 + a]).sum();
+            let wb = (dof + used.len() as f64) / (dof + d2);
+            for &a in &used {
+                w[idx + a] = wb;
+                sums[b0 + a] += wb * e[idx + a];
+                counts[b0 + a] += 1.0;
+            }
+        }
+    }
+    let vx = (0..n_x)
+        .map(|j| {
+            if counts[j] > 0.0 {
+                (sums[j] / counts[j]).max(1e-14)
+            } else {
+                prev.vx[j]
+            }
+        })
+        .collect();
+    Ok((Params { mu0, v0, vz, vx }, w))
+}

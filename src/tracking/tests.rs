@@ -136,6 +136,7 @@ fn em_increases_fit_and_converges_on_linear_model() {
         tol: 5e-3,
         gate: None,
         ll_tol: None,
+        dof: None,
     };
     let out = tr.run_em(p, &opts, |_| true).unwrap();
     assert!(out.converged, "{:?}", out.history.last());
@@ -231,5 +232,53 @@ fn log_likelihood_equals_the_kalman_innovation_likelihood() {
         (stats.log_lik - ll).abs() < 1e-8 * (1.0 + ll.abs()),
         "{} vs {ll}",
         stats.log_lik
+    );
+}
+
+#[test]
+fn student_t_weights_keep_outliers_out_of_the_noise_estimate() {
+    // 3 % of the entries moved by ±1 (20 x the noise range): the Gaussian M-step inflates V_x,
+    // the Student-t weights learn the inlier noise (uniform ±0.05 → 8.3e-4) and mark them.
+    let (em, mut x, p, _, n_x, _) = linear_problem(11);
+    let mut rng = Lcg(99);
+    let mut bad = Vec::new();
+    for (i, v) in x.iter_mut().enumerate() {
+        if v.is_finite() && rng.next() > 0.94 {
+            *v += if rng.next() > 0.0 { 1.0 } else { -1.0 };
+            bad.push(i);
+        }
+    }
+    assert!(!bad.is_empty());
+    let run = |dof: Option<f64>| {
+        let mut tr = Tracker::new(em.clone(), x.clone()).unwrap();
+        let opts = EmOptions {
+            max_iter: 60,
+            tol: 1e-4,
+            gate: None,
+            ll_tol: None,
+            dof,
+        };
+        let out = tr.run_em(p.clone(), &opts, |_| true).unwrap();
+        let vx = out.params.vx.iter().sum::<f64>() / n_x as f64;
+        (vx, tr.weights().to_vec())
+    };
+    let (vx_gauss, w_gauss) = run(None);
+    let (vx_t, w_t) = run(Some(4.0));
+    let truth = 0.05f64.powi(2) / 3.0;
+    assert!(w_gauss.iter().all(|&w| w == 1.0));
+    assert!(vx_gauss > 10.0 * truth, "Gaussian V_x {vx_gauss}");
+    assert!(
+        vx_t < 3.0 * truth && vx_t > 0.3 * truth,
+        "Student-t V_x {vx_t} vs {truth}"
+    );
+    let w_bad = bad.iter().map(|&i| w_t[i]).sum::<f64>() / bad.len() as f64;
+    let good: Vec<f64> = (0..x.len())
+        .filter(|i| x[*i].is_finite() && !bad.contains(i))
+        .map(|i| w_t[i])
+        .collect();
+    let w_good = good.iter().sum::<f64>() / good.len() as f64;
+    assert!(
+        w_bad < 0.1 * w_good,
+        "outlier weights {w_bad} vs inliers {w_good}"
     );
 }

@@ -260,6 +260,8 @@ def track(
     marker_names: Sequence[str] | None = None,
     stop: str = "loglik",
     ll_tol: float = DEFAULT_LL_TOL,
+    noise_model: str = "gauss",
+    dof: float = 4.0,
 ) -> PoseResult:
     """Reconstruct the poses of a recording (ACM supp. sec. 4).
 
@@ -293,6 +295,12 @@ def track(
         change stops early on smooth data and never on real data, where it oscillates.
     ll_tol : float
         Threshold of ``stop="loglik"`` (1e-3 nats per measurement entry).
+    noise_model : {"gauss", "student"}
+        Measurement noise per image point: the paper's Gaussian, or a Student-t with ``dof``
+        degrees of freedom learned by EM weights (``docs/tracking.md``): confident
+        DeepLabCut mistakes get small weights and do not inflate ``V_x``.
+    dof : float
+        Degrees of freedom of the Student-t model.
     progress : bool
         Print one line per EM iteration to stderr.
     gate : float or None
@@ -329,6 +337,10 @@ def track(
         raise ValueError(f"tol must be > 0, got {tol}")
     if stop not in ("loglik", "alg13"):
         raise ValueError(f"stop must be 'loglik' or 'alg13', got {stop!r}")
+    if noise_model not in ("gauss", "student"):
+        raise ValueError(f"noise_model must be 'gauss' or 'student', got {noise_model!r}")
+    if not (math.isfinite(dof) and dof > 0):
+        raise ValueError(f"dof must be > 0, got {dof}")
     if not (math.isfinite(ll_tol) and ll_tol > 0):
         raise ValueError(f"ll_tol must be > 0, got {ll_tol}")
     if not (math.isfinite(noise) and noise > 0):
@@ -375,6 +387,7 @@ def track(
     params, history, converged, interrupted = native.run_em(
         mu0, eye, eye.copy(), np.full(n_x, noise), int(max_iter), float(tol),
         gate_threshold(gate), _Printer(progress), float(ll_tol) if stop == "loglik" else None,
+        float(dof) if noise_model == "student" else None,
     )  # fmt: skip
     poses, joints, markers, joints_std, markers_std = native.posterior()
     means, covs = native.means(), native.covs()
@@ -388,7 +401,7 @@ def track(
         info={
             "method": "ukf", "converged": bool(converged), "interrupted": bool(interrupted),
             "iterations": len(history), "tol": float(tol), "gate": gate,
-            "stop": stop, "ll_tol": float(ll_tol),
+            "stop": stop, "ll_tol": float(ll_tol), "noise_model": noise_model, "dof": float(dof),
             "params": params, "status": mask, "markers_std": markers_std,
             "first_frame": f0, "mu0_init": mu0, "joint_limits": bool(joint_limits),
             "check_fit_px": fit_px,
