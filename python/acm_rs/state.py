@@ -104,10 +104,10 @@ class Normalization:
         """
         c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
         d = np.linalg.norm(c - c.mean(axis=0), axis=1) if len(c) else np.zeros(0)
-        base = cls.for_units(units, image_sizes)
         if len(c) < 2 or not np.all(np.isfinite(d)) or float(np.median(d)) <= 0:
-            return base
-        return cls(translation=float(np.median(d)) * 5.0 / 6.0, pixel=base.pixel)
+            return cls.for_units(units, image_sizes)
+        pixel = cls.for_units("", image_sizes).pixel  # any unit: c_t does not use it here
+        return cls(translation=float(np.median(d)) * 5.0 / 6.0, pixel=pixel)
 
     @classmethod
     def from_image_size(

@@ -100,11 +100,12 @@ def _first_pose(
 
 
 def _frames_rms(rig: CameraRig, skeleton: Skeleton, det: np.ndarray, norm: Normalization) -> float:
-    """Median over frames of the RMS reprojection error (px) of per-frame fits."""
+    """Median over frames of the median reprojection error (px) of per-frame fits (medians:
+    a few confident outliers must not make a correct rig look wrong)."""
     t, r = _deterministic(rig, skeleton, det, norm)
     err = np.linalg.norm(skeleton.project(rig, t, r) - det, axis=-1)
     with np.errstate(invalid="ignore"):
-        per_frame = np.sqrt(np.nanmean(np.where(np.isfinite(err), err**2, np.nan), axis=(0, 2)))
+        per_frame = np.nanmedian(np.where(np.isfinite(err), err, np.nan), axis=(0, 2))
     return float(np.nanmedian(per_frame))
 
 
@@ -114,13 +115,13 @@ def check_camera_order(
     det: np.ndarray,
     norm: Normalization,
     n_frames: int = 5,
-    plausible_px: float = 15.0,
+    plausible_px: float = 10.0,
 ) -> float:
-    """Fit the ``n_frames`` best-detected frames; if their reprojection error is implausible
-    for detections (> ``plausible_px``), try every other assignment of the detection files to
-    the cameras (up to 5 cameras) and refuse when one fits far better.
+    """Fit the ``n_frames`` best-detected frames; if their median reprojection error is
+    implausible for detections (> ``plausible_px``), try every other assignment of the
+    detection files to the cameras (up to 5 cameras) and refuse when one fits far better.
 
-    Returns the median per-frame RMS error (px) in the given order.
+    Returns the median per-frame median error (px) in the given order.
 
     Raises
     ------
@@ -157,14 +158,14 @@ def check_camera_order(
     if best_perm is not None and best < rms / 3.0:
         order = ", ".join(f"{names[i]} <- file {k + 1}" for i, k in enumerate(best_perm))
         raise ValueError(
-            f"the detections fit the calibration with {rms:.1f} px reprojection error in the "
-            f"given camera order, but with {best:.1f} px when assigned as {order}: the "
+            f"the detections fit the calibration with {rms:.1f} px median reprojection error in "
+            f"the given camera order, but with {best:.1f} px when assigned as {order}: the "
             "detection files are not in the calibration's camera order. Give one file per "
             f"camera in the order {names} (or name the cameras so they can be matched)."
         )
     warnings.warn(
-        f"the best-detected frames fit with {rms:.1f} px reprojection error, implausible for "
-        "DeepLabCut detections (typically 2-5 px), and no other camera order fits better: "
+        f"the best-detected frames fit with {rms:.1f} px median reprojection error, implausible "
+        "for DeepLabCut detections (typically 2-5 px), and no other camera order fits better: "
         "check the calibration (units, frame), the skeleton (another animal or model) and "
         "the detection files",
         stacklevel=3,
@@ -235,7 +236,7 @@ def _warn_implausible_fit(result: PoseResult, fit_px: float, factor: float = 3.0
     if med > max(5.0, factor * fit_px):
         warnings.warn(
             f"the tracked poses reproject with a median error of {med:.1f} px, {med / fit_px:.1f}"
-            f" x that of per-frame fits of the same detections ({fit_px:.1f} px RMS): the "
+            f" x that of per-frame fits of the same detections ({fit_px:.1f} px): the "
             "temporal model does not fit these data (check result.em_history and the frames "
             "without detections; method='deterministic' gives the per-frame fits)",
             stacklevel=3,
