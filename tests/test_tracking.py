@@ -271,3 +271,12 @@ def test_student_t_noise_model(session):
     assert res.info["noise_model"] == "student"
     with pytest.raises(ValueError, match="noise_model"):
         acm_rs.track(rig, sk, det, likelihood=lik, progress=False, noise_model="cauchy")
+
+
+def test_stretches_without_detections_are_reported(session):
+    sk, rig, _, _, det, lik, _, _ = session
+    d = det[:, :80].copy()
+    d[:, 30:45] = np.nan
+    with pytest.warns(UserWarning, match=r"frames 30-44\)"):
+        res = acm_rs.track(rig, sk, d, likelihood=lik[:, :80], progress=False, max_iter=3)
+    assert res.info["empty_stretches"] == [(30, 44)]

@@ -221,6 +221,32 @@ class _Printer:
         return True
 
 
+def _empty_stretches(det: np.ndarray, min_len: int = 10) -> list[tuple[int, int]]:
+    """``[(first, last)]`` frame ranges of at least ``min_len`` frames without any detection,
+    with a warning: their poses are the random walk's interpolation between the frames around
+    them, and its intervals are too narrow there (issue 12: 43 % coverage in a 40-frame gap)."""
+    import warnings
+
+    empty = ~np.isfinite(det[..., 0]).any(axis=(0, 2))
+    out, start = [], None
+    for t, e in enumerate(np.append(empty, False)):
+        if e and start is None:
+            start = t
+        elif not e and start is not None:
+            if t - start >= min_len:
+                out.append((start, t - 1))
+            start = None
+    if out:
+        where = ", ".join(f"{a}-{b}" for a, b in out[:5])
+        warnings.warn(
+            f"{len(out)} stretch(es) of >= {min_len} frames without any detection (frames "
+            f"{where}): their poses are interpolated and unreliable, and their posterior SD "
+            "underestimates the error; result.info['empty_stretches'] lists them",
+            stacklevel=3,
+        )
+    return out
+
+
 def _warn_implausible_fit(result: PoseResult, fit_px: float, factor: float = 3.0) -> None:
     """Warn when the tracked poses reproject far worse than per-frame fits of the same
     detections did (median error > ``factor`` x theirs and > 5 px): the temporal model
@@ -354,6 +380,7 @@ def track(
     check_units(rig, skeleton)
     fit_px = check_camera_order(rig, skeleton, det, norm)
     check_scale(rig, skeleton, det)
+    empty = _empty_stretches(det)
     sm = StateMap(skeleton, norm, joint_limits)
     if method == "deterministic":
         t, r = _deterministic(rig, skeleton, det, norm)
@@ -403,6 +430,7 @@ def track(
             "method": "ukf", "converged": bool(converged), "interrupted": bool(interrupted),
             "iterations": len(history), "tol": float(tol), "gate": gate,
             "stop": stop, "ll_tol": float(ll_tol), "noise_model": noise_model, "dof": float(dof),
+            "empty_stretches": empty,
             "params": params, "status": mask, "markers_std": markers_std,
             "first_frame": f0, "mu0_init": mu0, "joint_limits": bool(joint_limits),
             "check_fit_px": fit_px,
