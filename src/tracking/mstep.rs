@@ -11,6 +11,53 @@ use rayon::prelude::*;
 /// Frames per parallel work item (fixed, so that the reduction order is deterministic).
 const CHUNK: usize = 4;
 
+/// `e_tj = E[(x_tj − g_j(z_t))²]` under `N(μ̂_t, V̂_t)` by the sigma points (eq. 81) for the
+/// entries of frame `t` used in the E-step, NaN for the others; `sigma` (`2n × n`) and `g`
+/// (`2n × n_x`) are scratch.
+#[allow(clippy::too_many_arguments)]
+fn frame_residual_moments<E: Emission + ?Sized>(
+    em: &E,
+    means: &[f64],
+    covs: &[f64],
+    x: &[f64],
+    mask: &[u8],
+    t: usize,
+    sigma: &mut [f64],
+    g: &mut [f64],
+    out: &mut [f64],
+) -> Result<()> {
+    let (n, n_x) = (em.n_state(), em.n_meas());
+    out.fill(f64::NAN);
+    let m = &mask[t * n_x..(t + 1) * n_x];
+    if !m.contains(&status::USED) {
+        return Ok(());
+    }
+    let k = t + 1; // moments index (0 = z_0)
+    let l = cholesky(&covs[k * n * n..(k + 1) * n * n], n, &|| {
+        format!("the smoothed state covariance of frame {t}")
+    })?;
+    sigma_points(&means[k * n..(k + 1) * n], &l, sigma);
+    em.eval_batch(sigma, g)?;
+    let xt = &x[t * n_x..(t + 1) * n_x];
+    for j in 0..n_x {
+        if m[j] != status::USED {
+            continue;
+        }
+        let (mut s, mut cnt) = (0.0, 0usize);
+        for i in 0..2 * n {
+            let v = g[i * n_x + j];
+            if v.is_finite() {
+                s += (xt[j] - v) * (xt[j] - v);
+                cnt += 1;
+            }
+        }
+        if cnt > 0 {
+            out[j] = s / cnt as f64;
+        }
+    }
+    Ok(())
+}
+
 /// New parameters from the smoothed moments: `μ0 = μ̂_0`, `V0 = V̂_0` (eqs. 77-78),
 /// `V_z = acc / T` (eq. 79, `acc` from the smoother) and the diagonal `V_x` of eq. 81 from the
 /// sigma points of every `N(μ̂_t, V̂_t)` through `g`, counting only the entries used in the
@@ -41,32 +88,12 @@ pub(crate) fn m_step<E: Emission + ?Sized>(
             let mut counts = vec![0.0; n_x];
             let mut sigma = vec![0.0; 2 * n * n];
             let mut g = vec![0.0; 2 * n * n_x];
+            let mut e = vec![0.0; n_x];
             for t in c * CHUNK..((c + 1) * CHUNK).min(t_len) {
-                let m = &mask[t * n_x..(t + 1) * n_x];
-                if !m.contains(&status::USED) {
-                    continue;
-                }
-                let k = t + 1; // moments index (0 = z_0)
-                let l = cholesky(&covs[k * n * n..(k + 1) * n * n], n, &|| {
-                    format!("the smoothed state covariance of frame {t}")
-                })?;
-                sigma_points(&means[k * n..(k + 1) * n], &l, &mut sigma);
-                em.eval_batch(&sigma, &mut g)?;
-                let xt = &x[t * n_x..(t + 1) * n_x];
+                frame_residual_moments(em, means, covs, x, mask, t, &mut sigma, &mut g, &mut e)?;
                 for j in 0..n_x {
-                    if m[j] != status::USED {
-                        continue;
-                    }
-                    let (mut s, mut cnt) = (0.0, 0usize);
-                    for i in 0..2 * n {
-                        let v = g[i * n_x + j];
-                        if v.is_finite() {
-                            s += (xt[j] - v) * (xt[j] - v);
-                            cnt += 1;
-                        }
-                    }
-                    if cnt > 0 {
-                        sums[j] += s / cnt as f64;
+                    if e[j].is_finite() {
+                        sums[j] += e[j];
                         counts[j] += 1.0;
                     }
                 }
@@ -163,36 +190,9 @@ pub(crate) fn m_step_student<E: Emission + ?Sized>(
     e.par_chunks_mut(n_x)
         .enumerate()
         .try_for_each(|(t, et)| -> Result<()> {
-            let m = &mask[t * n_x..(t + 1) * n_x];
-            if !m.contains(&status::USED) {
-                return Ok(());
-            }
-            let kk = t + 1;
-            let l = cholesky(&covs[kk * n * n..(kk + 1) * n * n], n, &|| {
-                format!("the smoothed state covariance of frame {t}")
-            })?;
             let mut sigma = vec![0.0; 2 * n * n];
             let mut g = vec![0.0; 2 * n * n_x];
-            sigma_points(&means[kk * n..(kk + 1) * n], &l, &mut sigma);
-            em.eval_batch(&sigma, &mut g)?;
-            let xt = &x[t * n_x..(t + 1) * n_x];
-            for j in 0..n_x {
-                if m[j] != status::USED {
-                    continue;
-                }
-                let (mut s, mut cnt) = (0.0, 0usize);
-                for i in 0..2 * n {
-                    let v = g[i * n_x + j];
-                    if v.is_finite() {
-                        s += (xt[j] - v) * (xt[j] - v);
-                        cnt += 1;
-                    }
-                }
-                if cnt > 0 {
-                    et[j] = s / cnt as f64;
-                }
-            }
-            Ok(())
+            frame_residual_moments(em, means, covs, x, mask, t, &mut sigma, &mut g, et)
         })?;
     let mut w = vec![1.0; t_len * n_x];
     let mut sums = vec![0.0; n_x];
