@@ -227,3 +227,13 @@ def test_load_rejects_foreign_files(tmp_path):
     p.write_text("this is = = not toml")
     with pytest.raises(ValueError, match="invalid TOML"):
         acm_rs.Skeleton.load(p)
+
+
+def test_unknown_keys_in_skeleton_files_are_refused():
+    """A typo in a skeleton file is an error naming the key and the closest known one."""
+    doc = acm_rs.models.rat().to_dict()
+    with pytest.raises(ValueError, match=r"'joint_limit' \(did you mean 'joint_limits'\?\)"):
+        acm_rs.Skeleton.from_dict(doc | {"joint_limit": []})
+    doc["markers"][0] = dict(doc["markers"][0]) | {"positon": [0.0, 0.0, 0.0]}
+    with pytest.raises(ValueError, match=r"markers\[0\] \(head_001\): unknown key\(s\) 'positon'"):
+        acm_rs.Skeleton.from_dict(doc)

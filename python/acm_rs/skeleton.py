@@ -642,6 +642,11 @@ class Skeleton:
             )
         if doc.get("version") != FORMAT_VERSION:
             raise ValueError(f"{source}: unsupported skeleton file version {doc.get('version')!r}")
+        _check_keys(doc, _DOC_KEYS, source, "")
+        for key, allowed in (("joints", _JOINT_KEYS), ("markers", _MARKER_KEYS)):
+            for i, entry in enumerate(doc.get(key, [])):
+                if isinstance(entry, Mapping):
+                    _check_keys(entry, allowed, source, f"{key}[{i}] ({entry.get('name', '?')}): ")
         try:
             joints = doc["joints"]
             markers = doc.get("markers", [])
@@ -762,6 +767,29 @@ class SymmetryMap:
 
 
 # -- helpers ---------------------------------------------------------------------------------
+_DOC_KEYS = {
+    "format", "version", "name", "units", "angle_units", "up", "symmetry", "joints", "markers",
+    "joint_limits", "bone_length_constraints",
+}  # fmt: skip
+_JOINT_KEYS = {"name", "parent", "position", "frame"}
+_MARKER_KEYS = {"name", "joint", "position", "bounds"}
+
+
+def _check_keys(doc: Mapping, allowed: set[str], source: str, where: str) -> None:
+    """Refuse unknown keys (a typo would otherwise be ignored), suggesting the closest."""
+    import difflib
+
+    unknown = sorted(set(doc) - allowed)
+    if unknown:
+        hints = []
+        for k in unknown:
+            close = difflib.get_close_matches(k, sorted(allowed), n=1)
+            hints.append(f"{k!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+        raise ValueError(
+            f"{source}: {where}unknown key(s) {', '.join(hints)}; known: {sorted(allowed)}"
+        )
+
+
 def _frames_from_doc(
     joints: Sequence[Mapping], parents: Sequence[int], source: str
 ) -> np.ndarray | None:
