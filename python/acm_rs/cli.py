@@ -112,7 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     d.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     d.add_argument("--frames", type=int, default=100_000, help="poses for the timing")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=int, default=0, help="seed of the synthetic session (0)")
     d.add_argument(
         "--learn-frames", type=int, default=100, help="labelled frames for skeleton learning"
     )

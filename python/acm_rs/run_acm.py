@@ -1,4 +1,4 @@
-"""``acm-rs run-acm DATASET -o OUT``: run an ACM dataset folder end to end (issue 7 item 6).
+"""``acm-rs run-acm DATASET -o OUT``: run an ACM dataset folder end to end.
 
 Reads the authors' files (formats in ``docs/exports.md`` / :mod:`acm_rs.acm_formats`):
 ``configuration.py`` (parsed, never executed), ``model.npy``, ``multicalibration.npy`` +
@@ -160,7 +160,14 @@ def add_subcommands(sub) -> None:
     p = sub.add_parser(
         "run-acm",
         help="run an ACM dataset folder (configuration.py, model.npy, ...) end to end",
-        description=__doc__,
+        description=(
+            "Run a dataset folder of the authors' ACM tool end to end: read configuration.py "
+            "(parsed, never executed), model.npy, multicalibration.npy and origin_coord.npy "
+            "(the rig in the arena frame, cm), learn the skeleton from labels_manual.npz, track "
+            "labels_dlc_*.npy over index_frame_start:index_frame_end:dt with pcutoff, iter_max "
+            "and the normalisation constants, and write OUT/pose.npy and OUT/save_dict.npy in "
+            "the authors' layout next to acm-rs's own files in OUT/acm-rs/."
+        ),
     )
     p.add_argument("dataset", help="ACM dataset folder")
     p.add_argument("-o", "--output", required=True, help="output folder")

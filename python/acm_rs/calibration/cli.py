@@ -28,8 +28,9 @@ def add_subcommand(sub) -> None:
     p.add_argument("--camera-names", nargs="+", help="camera names, in source order")
     p.add_argument("--reference", default="0", help="reference camera (index or name)")
     p.add_argument(
-        "--loss", default="linear", choices=["linear", "soft_l1", "huber", "cauchy", "arctan"]
-    )
+        "--loss", default="linear", choices=["linear", "soft_l1", "huber", "cauchy", "arctan"],
+        help="robust loss of the bundle adjustment (scipy least_squares; default linear)",
+    )  # fmt: skip
     p.add_argument("--cache", help="detection cache (default: <output>.detections.npz)")
     p.add_argument("--no-cache", action="store_true", help="neither read nor write a cache")
     p.add_argument("--report", help="JSON QC report (default: <output>.report.json)")

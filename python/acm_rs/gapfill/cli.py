@@ -82,9 +82,17 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     g = sub.add_parser("gapfill", help="fill marker gaps in a C3D, TRC or CSV file")
     g.add_argument("input", help="input .c3d, .trc or .csv")
     g.add_argument("-o", "--output", required=True, help="output file (format from suffix)")
-    g.add_argument("--method", default="lowdim", choices=METHODS)
+    g.add_argument(
+        "--method", default="lowdim", choices=METHODS,
+        help="lowdim (default): the smoother in the learned SVD subspace with the fixes of "
+        "docs/gapfill.md; lowdim-paper: as published; the others are per-coordinate baselines",
+    )  # fmt: skip
     g.add_argument("--gamma", type=float, help="subspace energy fraction (lowdim)")
-    g.add_argument("--combine", choices=("none", "residual", "auto"))
+    g.add_argument(
+        "--combine", choices=("none", "residual", "auto"),
+        help="how lowdim combines the smoother with a spline on short gaps: auto (default, "
+        "threshold calibrated on probe gaps), residual (border residuals only), none",
+    )  # fmt: skip
     g.add_argument("--std", help="also write posterior standard deviations to this file")
     g.add_argument("--overwrite", action="store_true", help="replace an existing output")
     g.set_defaults(func=_cmd_gapfill)
@@ -92,9 +100,11 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     e.add_argument("input", help="complete .c3d, .trc or .csv")
     e.add_argument("--out", default="gapfill_eval", help="output folder")
     e.add_argument("--methods", help=f"comma-separated subset of {','.join(METHODS)}")
-    e.add_argument("--repeats", type=int, default=3)
-    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--repeats", type=int, default=3, help="gap patterns per method (3)")
+    e.add_argument("--seed", type=int, default=0, help="seed of the first gap pattern (0)")
     e.add_argument("--rate", type=float, help="frame rate (Hz) if the file has none")
     e.add_argument("--max-frames", type=int, help="use only the first N frames")
-    e.add_argument("--print-json", action="store_true")
+    e.add_argument(
+        "--print-json", action="store_true", help="also print the scores as JSON on stdout"
+    )
     e.set_defaults(func=_cmd_eval)

@@ -131,7 +131,11 @@ def add_subcommands(sub) -> None:
     p.add_argument("--gate", type=float, default=0.999, help="outlier gate probability (0.999)")
     p.add_argument("--no-gate", action="store_true", help="use every confident detection")
     p.add_argument("--no-limits", action="store_true", help="do not enforce joint-angle limits")
-    p.add_argument("--method", choices=["ukf", "deterministic"], default="ukf")
+    p.add_argument(
+        "--method", choices=["ukf", "deterministic"], default="ukf",
+        help="ukf (default): EM with the unscented Kalman filter and RTS smoother; "
+        "deterministic: independent per-frame fits, for comparison",
+    )  # fmt: skip
     p.add_argument("--export", nargs="+", choices=["anipose", "nwb", "c3d"], help="also write")
     p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D exports")
     p.add_argument("--plots", help="folder for the tracking figures")
@@ -146,8 +150,14 @@ def add_subcommands(sub) -> None:
 
     e = sub.add_parser("export", help="convert a tracking result (.npz) to other formats")
     e.add_argument("input", nargs="?", help="result written by acm-rs track (OUT.npz)")
-    e.add_argument("--format", nargs="+", choices=["anipose", "nwb", "c3d", "npz"])
-    e.add_argument("--points", choices=["joints", "markers"], default="joints")
+    e.add_argument(
+        "--format", nargs="+", choices=["anipose", "nwb", "c3d", "npz"],
+        help="output formats (anipose CSV, NWB/ndx-pose, C3D, NPZ)",
+    )  # fmt: skip
+    e.add_argument(
+        "--points", choices=["joints", "markers"], default="joints",
+        help="export the joints (default) or the surface markers",
+    )  # fmt: skip
     e.add_argument("--rate", type=float, help="frame rate (Hz), needed for C3D")
     e.add_argument("-o", "--output", help="output prefix (default: next to the input)")
     add_project_option(e, "export")
