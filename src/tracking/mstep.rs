@@ -58,6 +58,16 @@ fn frame_residual_moments<E: Emission + ?Sized>(
     Ok(())
 }
 
+/// `V_x,j = sums_j / counts_j` (eq. 81), the previous value for entries never used. A floor
+/// keeps `V_x` invertible if a measurement is fitted exactly.
+fn vx_from_sums(sums: &[f64], counts: &[f64], prev: &[f64]) -> Vec<f64> {
+    sums.iter()
+        .zip(counts)
+        .zip(prev)
+        .map(|((s, &c), &p)| if c > 0.0 { (s / c).max(1e-14) } else { p })
+        .collect()
+}
+
 /// New parameters from the smoothed moments: `μ0 = μ̂_0`, `V0 = V̂_0` (eqs. 77-78),
 /// `V_z = acc / T` (eq. 79, `acc` from the smoother) and the diagonal `V_x` of eq. 81 from the
 /// sigma points of every `N(μ̂_t, V̂_t)` through `g`, counting only the entries used in the
@@ -110,16 +120,7 @@ pub(crate) fn m_step<E: Emission + ?Sized>(
             counts[j] += c[j];
         }
     }
-    let vx = (0..n_x)
-        .map(|j| {
-            if counts[j] > 0.0 {
-                // A floor keeps V_x invertible if a measurement is fitted exactly.
-                (sums[j] / counts[j]).max(1e-14)
-            } else {
-                prev.vx[j]
-            }
-        })
-        .collect();
+    let vx = vx_from_sums(&sums, &counts, &prev.vx);
     Ok(Params { mu0, v0, vz, vx })
 }
 
@@ -215,14 +216,6 @@ pub(crate) fn m_step_student<E: Emission + ?Sized>(
             }
         }
     }
-    let vx = (0..n_x)
-        .map(|j| {
-            if counts[j] > 0.0 {
-                (sums[j] / counts[j]).max(1e-14)
-            } else {
-                prev.vx[j]
-            }
-        })
-        .collect();
+    let vx = vx_from_sums(&sums, &counts, &prev.vx);
     Ok((Params { mu0, v0, vz, vx }, w))
 }
