@@ -30,7 +30,8 @@ def data():
 def test_bundle_smoothing_equals_the_in_process_tracker(data, tmp_path):
     sk, rig, det, lik = data
     opts = {"max_iter": 4, "tol": 0.05}
-    ref = acm_rs.track(rig, sk, det, likelihood=lik, progress=False, **opts)
+    # the acm-smooth binary runs the paper's random walk (no position-velocity state yet)
+    ref = acm_rs.track(rig, sk, det, likelihood=lik, progress=False, motion="random_walk", **opts)
     path = write_bundle(tmp_path / "s1.npz", rig, sk, det, likelihood=lik, **opts)
     out, summary = smooth_bundle(path)
     assert out == tmp_path / "s1.smoothed.npz" and summary["n_frames"] == 40

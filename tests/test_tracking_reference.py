@@ -123,6 +123,7 @@ def problem(small_skeleton):
         sk._native, rig.get_params(), np.ascontiguousarray(lim[..., 0]),
         np.ascontiguousarray(lim[..., 1]), norm._tuple(), True,
         np.ascontiguousarray(x.reshape(t_len, len(rig), sk.n_markers, 2)),
+        relinearize=0,  # the paper's single unscented update, as the reference
     )  # fmt: skip
     return native, (mu0, v0, vz, vx), x, g
 

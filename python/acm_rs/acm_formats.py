@@ -910,7 +910,10 @@ def write_save_dict(path: str | Path, result: PoseResult) -> Path:
     (diagonal V_x), ``mu_uks`` (nT+1, n) and ``var_uks`` (nT+1, n, n) with the initial state
     (``mu0``, ``var0``) as row 0, like ACM. The EM parameters come from
     ``result.info["params"]`` (``mu0``, ``V0``, ``Vz``, ``Vx_diag``). Deterministic results
-    (no covariance): ``{"mu_fit": (nT+1, n)}`` with a NaN row 0.
+    (no covariance): ``{"mu_fit": (nT+1, n)}`` with a NaN row 0. For the position-velocity
+    model (``info["motion"] == "velocity"``) the position blocks of ``mu0``, ``V0`` and
+    ``V_z`` are written (ACM's random-walk layout, ``A`` the identity) and the whole
+    ``2n``-state parameters under the extra key ``velocity_params``.
     """
     mean = np.asarray(result.state_mean, float)
     n = mean.shape[1]
@@ -921,17 +924,22 @@ def write_save_dict(path: str | Path, result: PoseResult) -> Path:
     missing = [k for k in ("mu0", "V0", "Vz", "Vx_diag") if k not in params]
     if missing:
         raise ValueError(f"result.info['params'] lacks {missing} (needed for save_dict.npy)")
-    mu0 = np.asarray(params["mu0"], float).reshape(n)
-    var0 = np.asarray(params["V0"], float).reshape(n, n)
+    ns = np.asarray(params["mu0"]).size
+    if ns not in (n, 2 * n):
+        raise ValueError(f"result.info['params']['mu0'] has {ns} entries, the state {n}")
+    mu0 = np.asarray(params["mu0"], float).reshape(ns)[:n]
+    var0 = np.asarray(params["V0"], float).reshape(ns, ns)[:n, :n]
     doc = {
         "A": np.eye(n),
         "mu0": mu0,
         "var0": var0,
-        "var_f": np.asarray(params["Vz"], float).reshape(n, n),
+        "var_f": np.asarray(params["Vz"], float).reshape(ns, ns)[:n, :n],
         "var_g": np.diag(np.asarray(params["Vx_diag"], float).ravel()),
         "mu_uks": np.vstack([mu0[None], mean]),
         "var_uks": np.concatenate([var0[None], np.asarray(result.state_cov, float)]),
     }
+    if ns == 2 * n:
+        doc["velocity_params"] = {k: np.asarray(params[k], float) for k in ("mu0", "V0", "Vz")}
     return _save_dict(path, doc)
 
 

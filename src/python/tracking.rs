@@ -4,7 +4,9 @@
 use super::error::to_py;
 use super::{alloc, cameras_from, norm_from, out, view, Arr, Out, PySkeleton};
 use crate::limits::StateMap;
-use crate::tracking::{moments, EmOptions, FilterStats, Params, SkeletonEmission, Tracker};
+use crate::tracking::{
+    moments, EmOptions, FilterStats, Params, SkeletonEmission, Tracker, DEFAULT_RELINEARIZE,
+};
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -21,7 +23,7 @@ type EmReturn<'py> = (Bound<'py, PyDict>, Vec<Bound<'py, PyDict>>, bool, bool);
 
 impl PyTracker {
     fn params(&self, p: &ParamArrays<'_>) -> PyResult<Params> {
-        let n = self.inner.emission().map.n_state();
+        let n = self.inner.n_state();
         let n_x = crate::tracking::Emission::n_meas(self.inner.emission());
         Ok(Params {
             mu0: view(&p.0, "mu0", &[Some(n)])?.to_vec(),
@@ -39,6 +41,7 @@ fn stats_dict<'py>(py: Python<'py>, s: &FilterStats) -> PyResult<Bound<'py, PyDi
     d.set_item("gated", s.gated)?;
     d.set_item("invisible", s.invisible)?;
     d.set_item("gate_skipped_frames", s.gate_skipped_frames)?;
+    d.set_item("relinearized_frames", s.relinearized_frames)?;
     d.set_item("log_likelihood", s.log_lik)?;
     Ok(d)
 }
@@ -57,8 +60,11 @@ fn params_out<'py>(py: Python<'py>, p: Params) -> PyResult<Bound<'py, PyDict>> {
 #[pymethods]
 impl PyTracker {
     /// `x (T, n_cams, M, 2)` normalised pixels (eq. 11), NaN = missing.
+    /// `relinearize`: maximum iterated posterior linearisations per frame (0 = the paper's
+    /// single unscented update). `order`: 1 = the paper's random walk, 2 = position and
+    /// velocity (the parameters `mu0, V0, Vz` then have `2 n_state` rows, position first).
     #[new]
-    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x))]
+    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x, relinearize=DEFAULT_RELINEARIZE, order=1))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         skeleton: &PySkeleton,
@@ -68,6 +74,8 @@ impl PyTracker {
         norm: (f64, f64, f64, f64),
         joint_limits: bool,
         x: Arr<'_>,
+        relinearize: usize,
+        order: usize,
     ) -> PyResult<Self> {
         let sk = skeleton.inner.clone();
         let cams = cameras_from(&params)?;
@@ -83,13 +91,21 @@ impl PyTracker {
         )?
         .to_vec();
         let em = SkeletonEmission::new(sk, cams, map, norm).map_err(to_py)?;
-        let inner = Tracker::new(em, xs).map_err(to_py)?;
+        let mut inner = Tracker::new(em, xs).map_err(to_py)?;
+        inner.set_relinearize(relinearize);
+        inner.set_order(order).map_err(to_py)?;
         Ok(Self { inner })
     }
 
+    /// Dimension of the pose state `z` (Alg. 10).
     #[getter]
     fn n_state(&self) -> usize {
         self.inner.emission().map.n_state()
+    }
+    /// Rows of `mu0, V0, Vz`: `order × n_state`.
+    #[getter]
+    fn n_params_state(&self) -> usize {
+        self.inner.n_state()
     }
     #[getter]
     fn n_frames(&self) -> usize {

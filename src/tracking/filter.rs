@@ -53,6 +53,8 @@ pub struct FilterStats {
     /// Marginal log-likelihood `Σ_t ln N(x_t; x̄_t, S_t)` of the used entries under the
     /// predicted distributions (from the innovations; normalised-pixel units).
     pub log_lik: f64,
+    /// Frames whose update was relinearised about the posterior (see `relinearize`).
+    pub relinearized_frames: usize,
 }
 
 /// Scratch buffers of the filter (allocated once per pass).
@@ -102,6 +104,9 @@ pub(crate) fn sigma_points(m: &[f64], l: &DMatrix<f64>, out: &mut [f64]) {
 /// reject more than half of the blocks of the frame (then the prediction, not the
 /// measurements, is more likely wrong, and nothing is gated).
 ///
+/// `relinearize`: at most this many iterated posterior linearisations of the update where
+/// the first one does not hold (0: the paper's single unscented update).
+///
 /// # Errors
 /// Numerical error if `P` is not positive definite; emission errors.
 #[allow(clippy::too_many_arguments)]
@@ -112,6 +117,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
     v_prev: &[f64],
     x_t: &[f64],
     gate: Option<f64>,
+    relinearize: usize,
     frame: usize,
     ws: &mut Workspace,
     mask: &mut [u8],
@@ -120,25 +126,26 @@ pub(crate) fn step<E: Emission + ?Sized>(
     v_out: &mut [f64],
     stats: &mut FilterStats,
 ) -> Result<()> {
-    let n = mu_prev.len();
+    let n = em.n_state();
     let n_x = x_t.len();
-    // Alg. 6 lines 2-4 (exact for the random walk): z̄ = μ̃_{t-1}, P = Ṽ_{t-1} + V_z.
-    let p: Vec<f64> = v_prev.iter().zip(&params.vz).map(|(a, b)| a + b).collect();
+    // Alg. 6 lines 2-4 (exact for the linear transition): m̄ = F μ̃_{t-1}, P = F Ṽ_{t-1} Fᵀ + V_z.
+    let (zfull, p) = predict(mu_prev, v_prev, &params.vz, n);
+    let ns = zfull.len();
     mask.fill(status::MISSING);
     if x_t.iter().all(|v| v.is_nan()) {
         // No measurement: the filtered distribution is the prediction.
-        mu_out.copy_from_slice(mu_prev);
-        v_out.copy_from_slice(&p);
-        let mut pm = DMatrix::from_column_slice(n, n, v_out);
-        symmetrize(&mut pm);
-        v_out.copy_from_slice(pm.as_slice());
+        mu_out.copy_from_slice(zfull.as_slice());
+        v_out.copy_from_slice(p.as_slice());
         return Ok(());
     }
-    let l = cholesky(&p, n, &|| {
-        format!("the predicted state covariance P = Ṽ + V_z of frame {frame}")
+    // L̃ = chol(P); its leading n × n block L is the factor of the position block P_zz.
+    let l_full = cholesky(p.as_slice(), ns, &|| {
+        format!("the predicted state covariance P = F Ṽ Fᵀ + V_z of frame {frame}")
     })?;
+    let l = l_full.view((0, 0), (n, n)).into_owned();
+    let zbar = &zfull.as_slice()[..n];
     // Alg. 6 lines 5-7: sigma points of (z̄, P) through g, and their mean x̄.
-    sigma_points(mu_prev, &l, &mut ws.sigma);
+    sigma_points(zbar, &l, &mut ws.sigma);
     em.eval_batch(&ws.sigma, &mut ws.x)?;
     let m2 = 2 * n;
     let inv = 1.0 / m2 as f64;
@@ -172,8 +179,8 @@ pub(crate) fn step<E: Emission + ?Sized>(
     let np = ws.used.len();
     stats.used += np;
     if np == 0 {
-        mu_out.copy_from_slice(mu_prev);
-        v_out.copy_from_slice(&p);
+        mu_out.copy_from_slice(zfull.as_slice());
+        v_out.copy_from_slice(p.as_slice());
         return Ok(());
     }
     // Whitened deviations Ỹ (2n × n_p, row = sigma point) and innovation ν̃.
@@ -184,56 +191,279 @@ pub(crate) fn step<E: Emission + ?Sized>(
     for (q, &j) in ws.used.iter().enumerate() {
         nu[q] = (x_t[j] - ws.xbar[j]) * scale[q];
     }
-    let sq = inv.sqrt();
-    for i in 0..m2 {
-        let row = &ws.x[i * n_x..(i + 1) * n_x];
-        let dst = &mut ws.ytil[i * np..(i + 1) * np];
+    // Rows i and n + i (the sigma points z̄ ± √n L_i) become their scaled difference and sum:
+    // D = (Y₊ − Y₋)/√2 (the linear part, `C = L Dᵀ`) and E = (Y₊ + Y₋)/√2 (what no linear
+    // map explains). An orthogonal change of the 2n columns: `ỸỸᵀ` and the update are
+    // unchanged, and `W = [L, −L]/√2` becomes `[L, 0]`.
+    let sq = (0.5 * inv).sqrt();
+    for i in 0..n {
+        let (dst_d, rest) = ws.ytil[i * np..].split_at_mut(n * np);
+        let dst_e = &mut rest[..np];
+        let xp = &ws.x[i * n_x..(i + 1) * n_x];
+        let xm = &ws.x[(n + i) * n_x..(n + i + 1) * n_x];
         for (q, &j) in ws.used.iter().enumerate() {
-            dst[q] = (row[j] - ws.xbar[j]) * scale[q] * sq;
+            let (a, b) = (xp[j] - ws.xbar[j], xm[j] - ws.xbar[j]);
+            dst_d[q] = (a - b) * scale[q] * sq;
+            dst_e[q] = (a + b) * scale[q] * sq;
         }
     }
-    // M = I + Ỹ Ỹᵀ (the dominant product).
-    ws.gram.fill(0.0);
-    for i in 0..m2 {
-        ws.gram[i * m2 + i] = 1.0;
+    let mut up = linear_update(
+        zfull.as_slice(),
+        &l_full,
+        n,
+        &ws.ytil,
+        &nu,
+        &mut ws.gram,
+        frame,
+    )?;
+    if relinearize > 0 {
+        // the whitened prediction of the linear model at z̄: x̄ (first pass)
+        let xhat: Vec<f64> = ws.used.iter().map(|&j| ws.xbar[j]).collect();
+        if let Some(better) = relinearized(
+            em,
+            zfull.as_slice(),
+            &l_full,
+            x_t,
+            &scale,
+            xhat,
+            &up,
+            relinearize,
+            frame,
+            ws,
+        )? {
+            up = better;
+            stats.relinearized_frames += 1;
+        }
     }
-    add_gram_rows(&ws.ytil, m2, np, &mut ws.gram);
-    let lm = cholesky(&ws.gram, m2, &|| format!("I + ỸᵀỸ of frame {frame}"))?;
-    // s = M⁻¹ Ỹ ν̃ (here Ỹ is stored transposed: row i = sigma point i).
+    // ln N(x; x̂, S): `linear_update` leaves out the `ln |V_x|` term
+    let log_det_vx: f64 = ws.used.iter().map(|&j| vx_eff[j].ln()).sum();
+    stats.log_lik += up.log_lik - 0.5 * log_det_vx;
+    mu_out.copy_from_slice(up.mu.as_slice());
+    v_out.copy_from_slice(up.v.as_slice());
+    Ok(())
+}
+
+/// The result of one linear(ised) Kalman update.
+struct Update {
+    mu: DVector<f64>,
+    v: DMatrix<f64>,
+    /// `s = M⁻¹ Ỹ ν̃`, whose first `n` entries are the update in the coordinates of `L`.
+    s: DVector<f64>,
+    log_lik: f64,
+}
+
+/// The Kalman update of the prior `(m̄, P = L̃ L̃ᵀ)` of the state (position `z` first, `n`
+/// entries, then e.g. velocity) under the whitened linear-Gaussian model
+/// `x̃ = x̂ + D L⁻¹ (z − z̄) + E ξ + ε` (`ξ, ε ~ N(0, I)`, `L` the leading `n × n` block of
+/// `L̃`), given `Ỹ = [Dᵀ; Eᵀ]` (`2n × n_p`, row-major) and `ν̃ = x̃ − x̂`: with
+/// `M = I + ỸỸᵀ`, `s = M⁻¹ Ỹ ν̃` and `W = L̃[:, :n]`, `μ = m̄ + W s[..n]` and
+/// `Ṽ = P − W (I − M⁻¹) Wᵀ = Uᵀ U + L̃[:, n:] L̃[:, n:]ᵀ` with `U = L_M⁻¹ [Wᵀ; 0]`
+/// (push-through form of Alg. 6 lines 19-26), and `ln N(x; x̂, S)` from `|S| = |V_x| |M|`
+/// and `ν̃ᵀν̃ − (Ỹν̃)ᵀ s` (without the `|V_x|` term, which the caller adds).
+fn linear_update(
+    mbar: &[f64],
+    l_full: &DMatrix<f64>,
+    n: usize,
+    ytil: &[f64],
+    nu: &DVector<f64>,
+    gram: &mut [f64],
+    frame: usize,
+) -> Result<Update> {
+    let ns = mbar.len();
+    let m2 = 2 * n;
+    let np = nu.len();
+    // M = I + Ỹ Ỹᵀ (the dominant product).
+    gram.fill(0.0);
+    for i in 0..m2 {
+        gram[i * m2 + i] = 1.0;
+    }
+    add_gram_rows(ytil, m2, np, gram);
+    let lm = cholesky(gram, m2, &|| format!("I + ỸᵀỸ of frame {frame}"))?;
     let mut s = DVector::zeros(m2);
     for i in 0..m2 {
-        let row = &ws.ytil[i * np..(i + 1) * np];
+        let row = &ytil[i * np..(i + 1) * np];
         s[i] = row.iter().zip(nu.iter()).map(|(a, b)| a * b).sum();
     }
     let b = s.clone();
     super::dense::chol_solve_vec(&lm, &mut s);
-    // ln N(x; x̄, S) with S = V_x^{1/2} (I + Ỹ Ỹᵀ) V_x^{1/2}: |I + ỸỸᵀ| = |M| (Sylvester),
-    // νᵀS⁻¹ν = ν̃ᵀν̃ − bᵀM⁻¹b with b = Ỹᵀν̃ (Woodbury).
-    let log_det = ws.used.iter().map(|&j| vx_eff[j].ln()).sum::<f64>()
-        + 2.0 * (0..m2).map(|i| lm[(i, i)].ln()).sum::<f64>();
+    let log_det_m = 2.0 * (0..m2).map(|i| lm[(i, i)].ln()).sum::<f64>();
     let maha = nu.norm_squared() - b.dot(&s);
-    stats.log_lik -= 0.5 * (np as f64 * (2.0 * std::f64::consts::PI).ln() + log_det + maha);
-    // μ̃ = z̄ + W s with W = [L, −L]/√2.
-    let h = std::f64::consts::FRAC_1_SQRT_2;
-    let d: DVector<f64> = DVector::from_fn(n, |i, _| h * (s[i] - s[n + i]));
-    let upd = &l * d;
-    for r in 0..n {
-        mu_out[r] = mu_prev[r] + upd[r];
+    let log_lik = -0.5 * (np as f64 * (2.0 * std::f64::consts::PI).ln() + log_det_m + maha);
+    let w = l_full.columns(0, n);
+    let upd = w * s.rows(0, n);
+    let mu = DVector::from_fn(ns, |r, _| mbar[r] + upd[r]);
+    let mut u = DMatrix::zeros(m2, ns);
+    u.rows_mut(0, n).copy_from(&w.transpose());
+    lm.solve_lower_triangular_mut(&mut u);
+    let mut v = super::dense::at_a(&u);
+    if ns > n {
+        let rest = l_full.columns(n, ns - n);
+        v += rest * rest.transpose();
     }
-    // Ṽ = W M⁻¹ Wᵀ = Uᵀ U with U = L_M⁻¹ Wᵀ.
-    let mut u = DMatrix::zeros(m2, n);
-    for i in 0..n {
+    symmetrize(&mut v);
+    Ok(Update { mu, v, s, log_lik })
+}
+
+/// The prediction of Alg. 6 lines 2-4 for the linear transition `F` of the state's order
+/// (`mu_prev.len() / n`): order 1 is the paper's random walk (`F = I`); order 2 is the
+/// position–velocity state `(z, ż)` with `z_t = z_{t-1} + ż_{t-1} + ε`, `ż_t = ż_{t-1} + ε`
+/// (`F = [[I, I], [0, I]]`, beyond the paper). Returns `(F μ, F Ṽ Fᵀ + V_z)`.
+pub(crate) fn predict(
+    mu_prev: &[f64],
+    v_prev: &[f64],
+    vz: &[f64],
+    n: usize,
+) -> (DVector<f64>, DMatrix<f64>) {
+    let ns = mu_prev.len();
+    let mut m = DVector::from_column_slice(mu_prev);
+    let v = DMatrix::from_column_slice(ns, ns, v_prev);
+    let mut p = f_left(&f_right(&v, n), n);
+    if ns > n {
         for r in 0..n {
-            let v = h * l[(r, i)];
-            u[(i, r)] = v;
-            u[(n + i, r)] = -v;
+            m[r] += mu_prev[n + r];
         }
     }
-    lm.solve_lower_triangular_mut(&mut u);
-    let mut vt = super::dense::at_a(&u);
-    symmetrize(&mut vt);
-    v_out.copy_from_slice(vt.as_slice());
-    Ok(())
+    p += DMatrix::from_column_slice(ns, ns, vz);
+    symmetrize(&mut p);
+    (m, p)
+}
+
+/// `F A` for the transition of [`predict`] (`A` with `ns` rows): the position rows gain the
+/// velocity rows.
+pub(crate) fn f_left(a: &DMatrix<f64>, n: usize) -> DMatrix<f64> {
+    let mut out = a.clone();
+    if a.nrows() > n {
+        for c in 0..a.ncols() {
+            for r in 0..n {
+                out[(r, c)] += a[(n + r, c)];
+            }
+        }
+    }
+    out
+}
+
+/// `A Fᵀ` for the transition of [`predict`] (`A` with `ns` columns).
+pub(crate) fn f_right(a: &DMatrix<f64>, n: usize) -> DMatrix<f64> {
+    let mut out = a.clone();
+    if a.ncols() > n {
+        for c in 0..n {
+            for r in 0..a.nrows() {
+                out[(r, c)] += a[(r, n + c)];
+            }
+        }
+    }
+    out
+}
+
+/// Mean squared whitened linearisation error above which the update is relinearised
+/// (1 = one measurement SD per entry).
+const RELIN_THRESHOLD: f64 = 0.1;
+
+/// Iterated posterior linearisation (García-Fernández et al. 2015, beyond the paper): when the
+/// posterior mean lies where the statistical linearisation of `g` about the prior no longer
+/// holds (after a stretch without detections the prior is broad and one unscented update
+/// lands off), `g` is linearised again by the unscented transform about the current posterior
+/// `(μ, Ṽ)` — slope `A`, residual covariance `Ω` — and the prior is updated afresh with
+/// `x = A z + b + N(0, V_x + Ω)`. Repeats at most `max_iter` times while the whitened
+/// linearisation error at `μ` exceeds [`RELIN_THRESHOLD`]. Returns `None` when the first
+/// update already holds (the usual case: one extra evaluation of `g` per frame).
+#[allow(clippy::too_many_arguments)]
+fn relinearized<E: Emission + ?Sized>(
+    em: &E,
+    mbar: &[f64],
+    l_full: &DMatrix<f64>,
+    x_t: &[f64],
+    scale: &[f64],
+    mut xhat: Vec<f64>,
+    first: &Update,
+    max_iter: usize,
+    frame: usize,
+    ws: &mut Workspace,
+) -> Result<Option<Update>> {
+    let n = em.n_state();
+    let n_x = x_t.len();
+    let np = ws.used.len();
+    let m2 = 2 * n;
+    let l = l_full.view((0, 0), (n, n)).into_owned();
+    let zbar = &mbar[..n];
+    let mut gx = vec![0.0; n_x];
+    let mut best: Option<Update> = None;
+    for _ in 0..max_iter {
+        let cur = best.as_ref().unwrap_or(first);
+        // linearisation error at μ: g(μ) against x̂ + D s[..n] (whitened)
+        em.eval_batch(&cur.mu.as_slice()[..n], &mut gx)?;
+        let mut err = 0.0;
+        for (q, &j) in ws.used.iter().enumerate() {
+            let lin: f64 = (0..n).map(|i| ws.ytil[i * np + q] * cur.s[i]).sum();
+            let e = (gx[j] - xhat[q]) * scale[q] - lin;
+            err += e * e;
+        }
+        let mean_err = err / np as f64;
+        if mean_err.is_nan() || mean_err <= RELIN_THRESHOLD {
+            break; // NaN: a marker is no longer predictable; keep what we have
+        }
+        // Unscented linearisation about the posterior.
+        let vzz = cur.v.view((0, 0), (n, n)).into_owned();
+        let Ok(lj) = cholesky(vzz.as_slice(), n, &String::new) else {
+            break;
+        };
+        sigma_points(&cur.mu.as_slice()[..n], &lj, &mut ws.sigma);
+        em.eval_batch(&ws.sigma, &mut ws.x)?;
+        let inv = 1.0 / m2 as f64;
+        let mut xb = vec![0.0; np];
+        for row in ws.x.chunks_exact(n_x) {
+            for (q, &j) in ws.used.iter().enumerate() {
+                xb[q] += row[j];
+            }
+        }
+        xb.iter_mut().for_each(|v| *v *= inv);
+        if xb.iter().any(|v| !v.is_finite()) {
+            break;
+        }
+        // F (rows: sigma-point pairs) and E as in `step`, about the posterior.
+        let sq = (0.5 * inv).sqrt();
+        let mut f = DMatrix::zeros(n, np);
+        for i in 0..n {
+            let xp = &ws.x[i * n_x..(i + 1) * n_x];
+            let xm = &ws.x[(n + i) * n_x..(n + i + 1) * n_x];
+            let dst_e = &mut ws.ytil[(n + i) * np..(n + i + 1) * np];
+            for (q, &j) in ws.used.iter().enumerate() {
+                f[(i, q)] = (xp[j] - xm[j]) * scale[q] * sq;
+                dst_e[q] = (xp[j] + xm[j] - 2.0 * xb[q]) * scale[q] * sq;
+            }
+        }
+        // A = F L_j⁻¹ (whitened); D = A L, so Dᵀ = Gᵀ F with G = L_j⁻¹ L.
+        let Some(g) = lj.solve_lower_triangular(&l) else {
+            break;
+        };
+        let d = g.transpose() * &f;
+        for i in 0..n {
+            for q in 0..np {
+                ws.ytil[i * np + q] = d[(i, q)];
+            }
+        }
+        // x̂ = x̄_j + A (z̄ − μ_j), whitened; ν̃ = x̃ − x̂.
+        let diff = DVector::from_fn(n, |r, _| zbar[r] - cur.mu[r]);
+        let Some(c) = lj.solve_lower_triangular(&diff) else {
+            break;
+        };
+        let shift = f.transpose() * c;
+        let mut nu = DVector::zeros(np);
+        for (q, &j) in ws.used.iter().enumerate() {
+            xhat[q] = xb[q] + shift[q] / scale[q];
+            nu[q] = (x_t[j] - xhat[q]) * scale[q];
+        }
+        best = Some(linear_update(
+            mbar,
+            l_full,
+            n,
+            &ws.ytil,
+            &nu,
+            &mut ws.gram,
+            frame,
+        )?);
+    }
+    Ok(best)
 }
 
 /// The innovation gate: per block of entries (one image point), the squared Mahalanobis

@@ -157,7 +157,17 @@ pub struct Tracker<E: Emission> {
     weights: Vec<f64>,
     acc: nalgebra::DMatrix<f64>,
     stats: FilterStats,
+    relinearize: usize,
+    /// 1: the paper's random walk; 2: position and velocity (see [`filter::predict`]).
+    order: usize,
+    /// Position marginals of the last E-step when `order > 1` (`(T+1) × n`, `(T+1) × n × n`).
+    zmeans: Vec<f64>,
+    zcovs: Vec<f64>,
 }
+
+/// Default maximum number of iterated posterior linearisations per frame (see
+/// [`Tracker::set_relinearize`]).
+pub const DEFAULT_RELINEARIZE: usize = 10;
 
 impl<E: Emission> Tracker<E> {
     /// Sets up a tracker for measurements `x` (`T × n_x`, NaN = missing, in the layout of the
@@ -196,6 +206,10 @@ impl<E: Emission> Tracker<E> {
             covs: vec![0.0; (t + 1) * n * n],
             acc: nalgebra::DMatrix::zeros(n, n),
             stats: FilterStats::default(),
+            relinearize: DEFAULT_RELINEARIZE,
+            order: 1,
+            zmeans: Vec::new(),
+            zcovs: Vec::new(),
         })
     }
 
@@ -207,13 +221,83 @@ impl<E: Emission> Tracker<E> {
     pub fn n_frames(&self) -> usize {
         self.n_frames
     }
-    /// Posterior means of the last E-step, `(T+1) × n` (row 0 = `z_0`).
+    /// Posterior means of the position `z` in the last E-step, `(T+1) × n` (row 0 = `z_0`).
     pub fn means(&self) -> &[f64] {
-        &self.means
+        if self.order == 1 {
+            &self.means
+        } else {
+            &self.zmeans
+        }
     }
-    /// Posterior covariances of the last E-step, `(T+1) × n × n`.
+    /// Posterior covariances of the position `z` in the last E-step, `(T+1) × n × n`.
     pub fn covs(&self) -> &[f64] {
-        &self.covs
+        if self.order == 1 {
+            &self.covs
+        } else {
+            &self.zcovs
+        }
+    }
+    /// Posterior means and covariances of the whole state (`(T+1) × ns`, `(T+1) × ns × ns`,
+    /// `ns = order · n`; for order 2 each row is `(z, ż)`).
+    pub fn state_moments(&self) -> (&[f64], &[f64]) {
+        (&self.means, &self.covs)
+    }
+    /// The order of the motion model (1 or 2).
+    pub fn order(&self) -> usize {
+        self.order
+    }
+    /// State dimension `ns = order · n` of the parameters `μ0, V0, V_z`.
+    pub fn n_state(&self) -> usize {
+        self.order * self.em.n_state()
+    }
+
+    /// The motion model: order 1 is the paper's random walk `z_t = z_{t-1} + ε` (eq. 49);
+    /// order 2 adds the velocity, `z_t = z_{t-1} + ż_{t-1} + ε`, `ż_t = ż_{t-1} + ε'` (beyond
+    /// the paper: fast movements do not lag and gaps are bridged by smooth curves). The
+    /// parameters `μ0, V0, V_z` then have `2n` entries / rows, position first.
+    ///
+    /// # Errors
+    /// Invalid for an order other than 1 or 2.
+    pub fn set_order(&mut self, order: usize) -> Result<()> {
+        if !(1..=2).contains(&order) {
+            return Err(AcmError::Invalid(format!(
+                "the motion model's order must be 1 (random walk) or 2 (velocity), got {order}"
+            )));
+        }
+        let ns = order * self.em.n_state();
+        self.order = order;
+        self.means = vec![0.0; (self.n_frames + 1) * ns];
+        self.covs = vec![0.0; (self.n_frames + 1) * ns * ns];
+        Ok(())
+    }
+
+    /// Copies the position marginals out of the whole-state moments (order > 1).
+    fn extract_positions(&mut self) {
+        if self.order == 1 {
+            return;
+        }
+        let n = self.em.n_state();
+        let ns = self.order * n;
+        let steps = self.n_frames + 1;
+        self.zmeans.resize(steps * n, 0.0);
+        self.zcovs.resize(steps * n * n, 0.0);
+        for k in 0..steps {
+            self.zmeans[k * n..(k + 1) * n].copy_from_slice(&self.means[k * ns..k * ns + n]);
+            for c in 0..n {
+                let src = &self.covs[k * ns * ns + c * ns..k * ns * ns + c * ns + n];
+                self.zcovs[k * n * n + c * n..k * n * n + (c + 1) * n].copy_from_slice(src);
+            }
+        }
+    }
+
+    /// Replaces `μ0, V0` of an M-step on the position marginals by the whole state's.
+    fn with_full_initial(&self, mut p: Params) -> Params {
+        if self.order > 1 {
+            let ns = self.order * self.em.n_state();
+            p.mu0 = self.means[..ns].to_vec();
+            p.v0 = self.covs[..ns * ns].to_vec();
+        }
+        p
     }
     /// Status of every measurement entry in the last E-step (`T × n_x`, see [`status`]).
     pub fn mask(&self) -> &[u8] {
@@ -224,13 +308,21 @@ impl<E: Emission> Tracker<E> {
         self.stats
     }
 
+    /// At most `k` iterated posterior linearisations per frame where the single unscented
+    /// update does not hold (e.g. the first frame with detections after a stretch without
+    /// any); 0 gives the paper's filter exactly. Default [`DEFAULT_RELINEARIZE`].
+    pub fn set_relinearize(&mut self, k: usize) {
+        self.relinearize = k;
+    }
+
     /// Runs the unscented Kalman filter (Alg. 7) only: afterwards [`Self::means`] and
     /// [`Self::covs`] hold the filtered moments.
     ///
     /// # Errors
     /// Invalid parameters; numerical errors naming the frame.
     pub fn filter(&mut self, params: &Params, gate: Option<f64>) -> Result<FilterStats> {
-        let (n, n_x) = (self.em.n_state(), self.em.n_meas());
+        let n_x = self.em.n_meas();
+        let n = self.n_state();
         params.validate(n, n_x)?;
         if let Some(g) = gate {
             if g.is_nan() || g <= 0.0 {
@@ -239,7 +331,7 @@ impl<E: Emission> Tracker<E> {
         }
         self.means[..n].copy_from_slice(&params.mu0);
         self.covs[..n * n].copy_from_slice(&params.v0);
-        let mut ws = filter::Workspace::new(n, n_x);
+        let mut ws = filter::Workspace::new(self.em.n_state(), n_x);
         let mut stats = FilterStats::default();
         for t in 0..self.n_frames {
             let (mh, mt) = self.means.split_at_mut((t + 1) * n);
@@ -251,6 +343,7 @@ impl<E: Emission> Tracker<E> {
                 &ch[t * n * n..],
                 &self.x[t * n_x..(t + 1) * n_x],
                 gate,
+                self.relinearize,
                 t,
                 &mut ws,
                 &mut self.mask[t * n_x..(t + 1) * n_x],
@@ -261,6 +354,7 @@ impl<E: Emission> Tracker<E> {
             )?;
         }
         self.stats = stats;
+        self.extract_positions();
         Ok(stats)
     }
 
@@ -271,12 +365,9 @@ impl<E: Emission> Tracker<E> {
     /// As [`Self::filter`].
     pub fn e_step(&mut self, params: &Params, gate: Option<f64>) -> Result<FilterStats> {
         let stats = self.filter(params, gate)?;
-        self.acc = smoother::smooth_in_place(
-            &mut self.means,
-            &mut self.covs,
-            &params.vz,
-            self.em.n_state(),
-        )?;
+        let (ns, n) = (self.n_state(), self.em.n_state());
+        self.acc = smoother::smooth_in_place(&mut self.means, &mut self.covs, &params.vz, ns, n)?;
+        self.extract_positions();
         Ok(stats)
     }
 
@@ -285,15 +376,16 @@ impl<E: Emission> Tracker<E> {
     /// # Errors
     /// Numerical errors for a smoothed covariance that is not positive semi-definite.
     pub fn m_step(&self, prev: &Params) -> Result<Params> {
-        mstep::m_step(
+        let p = mstep::m_step(
             &self.em,
-            &self.means,
-            &self.covs,
+            self.means(),
+            self.covs(),
             &self.x,
             &self.mask,
             &self.acc,
             prev,
-        )
+        )?;
+        Ok(self.with_full_initial(p))
     }
 
     /// Per-entry precision weights of the last robust M-step (`T × n_x`; 1 = Gaussian).
@@ -325,8 +417,8 @@ impl<E: Emission> Tracker<E> {
                 Some(dof) => {
                     let (next, w) = mstep::m_step_student(
                         &self.em,
-                        &self.means,
-                        &self.covs,
+                        self.means(),
+                        self.covs(),
                         &self.x,
                         &self.mask,
                         &self.acc,
@@ -334,7 +426,7 @@ impl<E: Emission> Tracker<E> {
                         dof,
                     )?;
                     self.weights = w;
-                    next
+                    self.with_full_initial(next)
                 }
                 None => self.m_step(&params)?,
             };

@@ -13,52 +13,65 @@
 //! this against the literal sigma-point computation.) No gain needs to be stored.
 
 use super::dense::{chol_solve_mat, cholesky, symmetrize};
+use super::filter::{f_left, f_right};
 use crate::error::Result;
 use nalgebra::{DMatrix, DVector};
 
-/// Runs Alg. 9 in place: `means`/`covs` hold the filtered `(T+1)` moments (index 0 = the
-/// prior of `z_0`) and are overwritten with the smoothed ones. Returns
-/// `Σ_{t=1}^{T} E[(z_t − z_{t-1})(z_t − z_{t-1})ᵀ]` (`n × n`, column-major).
+/// Runs Alg. 9 in place: `means`/`covs` hold the filtered `(T+1)` moments of the state of
+/// size `ns` (index 0 = the prior of `s_0`; `ns = n` for the paper's random walk, `2n` for the
+/// position–velocity state of [`super::filter::predict`]) and are overwritten with the
+/// smoothed ones. Returns `Σ_{t=1}^{T} E[(s_t − F s_{t-1})(s_t − F s_{t-1})ᵀ]` (`ns × ns`,
+/// column-major), the sufficient statistic of eq. 79.
+///
+/// For a general linear `F`: `P = F Ṽ_t Fᵀ + V_z`, `G_t = Ṽ_t Fᵀ P⁻¹`,
+/// `μ̂_t = μ̃_t + G_t (μ̂_{t+1} − F μ̃_t)`, `V̂_t = Ṽ_t + G_t (V̂_{t+1} − P) G_tᵀ`, and with
+/// `d = μ̂_{t+1} − F μ̂_t`, `C = V̂_{t+1} G_tᵀ` (eq. 59):
+/// `E[(s_{t+1} − F s_t)(·)ᵀ] = d dᵀ + V̂_{t+1} − C Fᵀ − F Cᵀ + F V̂_t Fᵀ`.
 ///
 /// # Errors
-/// Numerical error if some `Ṽ_t + V_z` is not positive definite.
+/// Numerical error if some `F Ṽ_t Fᵀ + V_z` is not positive definite.
 pub(crate) fn smooth_in_place(
     means: &mut [f64],
     covs: &mut [f64],
     vz: &[f64],
+    ns: usize,
     n: usize,
 ) -> Result<DMatrix<f64>> {
-    let steps = means.len() / n;
-    let mut acc = DMatrix::zeros(n, n);
+    let steps = means.len() / ns;
+    let mut acc = DMatrix::zeros(ns, ns);
     if steps < 2 {
         return Ok(acc);
     }
-    let vz = DMatrix::from_column_slice(n, n, vz);
+    let vz = DMatrix::from_column_slice(ns, ns, vz);
     for t in (0..steps - 1).rev() {
-        let (cov_head, cov_tail) = covs.split_at_mut((t + 1) * n * n);
-        let vf = DMatrix::from_column_slice(n, n, &cov_head[t * n * n..]);
-        let vs_next = DMatrix::from_column_slice(n, n, &cov_tail[..n * n]);
-        let (mean_head, mean_tail) = means.split_at_mut((t + 1) * n);
-        let mf = DVector::from_column_slice(&mean_head[t * n..]);
-        let ms_next = DVector::from_column_slice(&mean_tail[..n]);
+        let (cov_head, cov_tail) = covs.split_at_mut((t + 1) * ns * ns);
+        let vf = DMatrix::from_column_slice(ns, ns, &cov_head[t * ns * ns..]);
+        let vs_next = DMatrix::from_column_slice(ns, ns, &cov_tail[..ns * ns]);
+        let (mean_head, mean_tail) = means.split_at_mut((t + 1) * ns);
+        let mf = DVector::from_column_slice(&mean_head[t * ns..]);
+        let ms_next = DVector::from_column_slice(&mean_tail[..ns]);
         // Alg. 8 lines 3-6.
-        let p = &vf + &vz;
-        let lp = cholesky(p.as_slice(), n, &|| {
-            format!("Ṽ_t + V_z in the smoother at frame {t}")
+        let fv = f_left(&vf, n); // F Ṽ_t
+        let p = f_right(&fv, n) + &vz;
+        let lp = cholesky(p.as_slice(), ns, &|| {
+            format!("F Ṽ_t Fᵀ + V_z in the smoother at frame {t}")
         })?;
-        let mut gt = vf.clone(); // Gᵀ = P⁻¹ Ṽ_t (P and Ṽ_t symmetric)
+        let mut gt = fv; // Gᵀ = P⁻¹ F Ṽ_t (P and Ṽ_t symmetric)
         chol_solve_mat(&lp, &mut gt);
         let g = gt.transpose();
         // Lines 7-8.
-        let ms = &mf + &g * (&ms_next - &mf);
+        let fm = f_left(&DMatrix::from_column_slice(ns, 1, mf.as_slice()), n);
+        let ms = &mf + &g * (&ms_next - fm.column(0));
         let mut vs = &vf + &g * (&vs_next - &p) * &gt;
         symmetrize(&mut vs);
         // Eq. 79 term for the pair (t+1, t).
-        let d = &ms_next - &ms;
-        let cross = &vs_next * &gt; // Cov(z_{t+1}, z_t) = V̂_{t+1} G_tᵀ
-        acc += &d * d.transpose() + &vs_next + &vs - &cross - cross.transpose();
-        mean_head[t * n..].copy_from_slice(ms.as_slice());
-        cov_head[t * n * n..].copy_from_slice(vs.as_slice());
+        let fms = f_left(&DMatrix::from_column_slice(ns, 1, ms.as_slice()), n);
+        let d = &ms_next - fms.column(0);
+        let cross = &vs_next * &gt; // Cov(s_{t+1}, s_t) = V̂_{t+1} G_tᵀ
+        let cf = f_right(&cross, n);
+        acc += &d * d.transpose() + &vs_next - &cf - cf.transpose() + f_left(&f_right(&vs, n), n);
+        mean_head[t * ns..].copy_from_slice(ms.as_slice());
+        cov_head[t * ns * ns..].copy_from_slice(vs.as_slice());
     }
     symmetrize(&mut acc);
     Ok(acc)

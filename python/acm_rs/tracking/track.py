@@ -32,6 +32,12 @@ DEFAULT_GATE = 0.999
 #: the 6 that Alg. 13's tol = 0.05 allows; docs/tracking.md).
 DEFAULT_LL_TOL = 1e-3
 
+#: Motion models and the order of their state (1: position, the paper's random walk;
+#: 2: position and velocity).
+MOTION_ORDER = {"random_walk": 1, "velocity": 2, "auto": 2}
+#: Default motion model (chosen by measurement, docs/tracking.md).
+DEFAULT_MOTION = "auto"
+
 
 def default_normalization(rig: CameraRig, skeleton: Skeleton) -> Normalization:
     """Sec. 3.3 constants for a rig and skeleton (:meth:`Normalization.for_rig`).
@@ -202,6 +208,37 @@ def _deterministic(
     return poses[:, :3], poses[:, 3:].reshape(len(poses), skeleton.n_bones, 3)
 
 
+def _velocity_init(params: dict, means: np.ndarray) -> tuple:
+    """Start of EM for the position-velocity state from the random walk's EM result:
+    ``μ0 = (μ̂_0, μ̂_1 − μ̂_0)``, ``V0 = diag(V0, 2 V0 + Q_v)``, ``V_z = diag(V_z / 10, Q_v)``
+    with ``Q_v`` the covariance of the second differences of the smoothed means ``(T+1, n)``,
+    and the learned ``V_x``."""
+    m = np.asarray(means)
+    n = m.shape[1]
+    d2 = np.diff(m, 2, axis=0) if len(m) > 2 else np.zeros((1, n))
+    qv = d2.T @ d2 / len(d2) + 1e-12 * np.eye(n)
+    z = np.zeros((n, n))
+    v0, vz = params["V0"], params["Vz"]
+    mu0 = np.concatenate([params["mu0"], m[1] - m[0] if len(m) > 1 else np.zeros(n)])
+    v0 = np.block([[v0, z], [z, 2 * v0 + qv]])
+    vz = np.block([[0.1 * vz, z], [z, qv]])
+    return mu0, v0, vz, params["Vx_diag"]
+
+
+def _velocity_worse(rw: list[dict], vel: list[dict]) -> str:
+    """Why the position-velocity fit is worse than the random walk's ('' if it is not):
+    fewer detections used (the filter lost the animal) or a lower marginal log-likelihood
+    of the detections, both from the last EM iteration of each."""
+    if not rw or not vel:
+        return ""
+    a, b = rw[-1], vel[-1]
+    if b["used"] < 0.98 * a["used"]:
+        return f"it used {b['used']} detection entries against {a['used']}"
+    if b["log_likelihood"] < a["log_likelihood"]:
+        return f"log-likelihood {b['log_likelihood']:.6g} against {a['log_likelihood']:.6g}"
+    return ""
+
+
 class _Printer:
     """One line per EM iteration on stderr (or nothing)."""
 
@@ -289,6 +326,8 @@ def track(
     ll_tol: float = DEFAULT_LL_TOL,
     noise_model: str = "gauss",
     dof: float = 4.0,
+    motion: str = DEFAULT_MOTION,
+    relinearize: int = 10,
 ) -> PoseResult:
     """Reconstruct the poses of a recording (ACM supp. sec. 4).
 
@@ -328,6 +367,20 @@ def track(
         DeepLabCut mistakes get small weights and do not inflate ``V_x``.
     dof : float
         Degrees of freedom of the Student-t model.
+    motion : {"auto", "velocity", "random_walk"}
+        Motion model of the state. ``"random_walk"``: the paper's ``z_t = z_{t-1} + ε``
+        (eq. 49). ``"velocity"``: position and velocity, ``z_t = z_{t-1} + ż_{t-1} + ε``,
+        ``ż_t = ż_{t-1} + ε'`` with the whole ``2n × 2n`` transition covariance learned by EM
+        (beyond the paper), started from the random walk's EM result: fast movements do not
+        lag. ``"auto"`` (default): velocity, unless the recording has stretches of >= 10
+        frames without any detection (there the velocity extrapolates the animal out of the
+        cameras' view) or the velocity fit uses fewer detections or has a lower marginal
+        log-likelihood than the random walk's; ``info["motion"]`` says which was used and
+        ``info["motion_note"]`` why (``docs/tracking.md``).
+    relinearize : int
+        At most this many iterated posterior linearisations of a frame's update where the
+        single unscented update of Alg. 6 does not hold (the first frame with detections
+        after a stretch without any); 0 gives the paper's filter.
     progress : bool
         Print one line per EM iteration to stderr.
     gate : float or None
@@ -372,6 +425,10 @@ def track(
         raise ValueError(f"ll_tol must be > 0, got {ll_tol}")
     if not (math.isfinite(noise) and noise > 0):
         raise ValueError(f"noise must be > 0, got {noise}")
+    if motion not in MOTION_ORDER:
+        raise ValueError(f"motion must be one of {sorted(MOTION_ORDER)}, got {motion!r}")
+    if int(relinearize) != relinearize or relinearize < 0:
+        raise ValueError(f"relinearize must be an integer >= 0, got {relinearize}")
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
     n_frames = det.shape[1]
     norm = normalization or default_normalization(rig, skeleton)
@@ -403,20 +460,58 @@ def track(
     mu0 = sm.from_pose(t0, r0)
     x = norm.normalize_pixels(det).transpose(1, 0, 2, 3)  # (T, C, M, 2)
     lim = skeleton.joint_limits
-    native = _native.NativeTracker(
-        skeleton._native, rig.get_params(), np.ascontiguousarray(lim[..., 0]),
-        np.ascontiguousarray(lim[..., 1]), norm._tuple(), bool(joint_limits),
-        np.ascontiguousarray(x),
-    )  # fmt: skip
-    n = native.n_state
-    eye = np.eye(n) * noise
+
+    def make_tracker(order: int):
+        return _native.NativeTracker(
+            skeleton._native, rig.get_params(), np.ascontiguousarray(lim[..., 0]),
+            np.ascontiguousarray(lim[..., 1]), norm._tuple(), bool(joint_limits),
+            np.ascontiguousarray(x), relinearize=int(relinearize), order=order,
+        )  # fmt: skip
+
+    def run(native, init: tuple, max_iter: int):
+        return native.run_em(
+            *init, int(max_iter), float(tol), gate_threshold(gate), _Printer(progress),
+            float(ll_tol) if stop == "loglik" else None,
+            float(dof) if noise_model == "student" else None,
+        )  # fmt: skip
+
+    native = make_tracker(1)
+    eye = np.eye(native.n_state) * noise
     n_x = x[0].size
     t_init = time.perf_counter() - t_start
-    params, history, converged, interrupted = native.run_em(
-        mu0, eye, eye.copy(), np.full(n_x, noise), int(max_iter), float(tol),
-        gate_threshold(gate), _Printer(progress), float(ll_tol) if stop == "loglik" else None,
-        float(dof) if noise_model == "student" else None,
-    )  # fmt: skip
+    # Alg. 11 with the random walk (sec. 4.7 initialisation)
+    params, history, converged, interrupted = run(
+        native, (mu0, eye, eye.copy(), np.full(n_x, noise)), max_iter
+    )
+    for h in history:
+        h["motion"] = "random_walk"
+    used = motion
+    if motion == "auto":
+        used = "random_walk" if empty else "velocity"
+    motion_note = "" if motion != "auto" or not empty else "stretches without detections"
+    if used == "velocity" and not interrupted:
+        # EM of the position-velocity model started from the random walk's answer (from
+        # the sec. 4.7 start it wanders: docs/tracking.md)
+        rw = (native, params, history, converged)
+        init = _velocity_init(params, native.means())
+        native = make_tracker(2)
+        params, more, converged, interrupted = run(native, init, max(1, max_iter - len(history)))
+        for h in more:
+            h["motion"] = "velocity"
+        worse = _velocity_worse(history, more)
+        if worse:
+            if motion == "auto":
+                native, params, _, converged = rw
+                used, motion_note = "random_walk", worse
+            else:
+                import warnings
+
+                warnings.warn(
+                    f"motion='velocity' fits these detections worse than the random walk "
+                    f"({worse}); consider motion='random_walk'",
+                    stacklevel=2,
+                )
+        history = history + more
     poses, joints, markers, joints_std, markers_std = native.posterior()
     means, covs = native.means(), native.covs()
     mask = native.mask().transpose(1, 0, 2, 3)[..., 0]  # (C, T, M)
@@ -430,6 +525,8 @@ def track(
             "method": "ukf", "converged": bool(converged), "interrupted": bool(interrupted),
             "iterations": len(history), "tol": float(tol), "gate": gate,
             "stop": stop, "ll_tol": float(ll_tol), "noise_model": noise_model, "dof": float(dof),
+            "motion": used, "motion_requested": motion, "motion_note": motion_note,
+            "relinearize": int(relinearize),
             "empty_stretches": empty,
             "params": params, "status": mask, "markers_std": markers_std,
             "first_frame": f0, "mu0_init": mu0, "joint_limits": bool(joint_limits),
