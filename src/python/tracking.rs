@@ -234,6 +234,31 @@ impl PyTracker {
         params_out(py, p)
     }
 
+    /// Position moments `(T+1, n)`, `(T+1, n, n)` near the posterior (e.g. another tracker's
+    /// `means()`, `covs()` under the random walk) to linearise about where the prior is too
+    /// broad for the unscented transform; `None` removes them.
+    #[pyo3(signature = (means=None, covs=None))]
+    fn set_linearization_hint(
+        &mut self,
+        means: Option<Arr<'_>>,
+        covs: Option<Arr<'_>>,
+    ) -> PyResult<()> {
+        let (t, n) = (self.inner.n_frames() + 1, self.n_state());
+        let hint = match (means, covs) {
+            (Some(m), Some(c)) => Some((
+                view(&m, "means", &[Some(t), Some(n)])?.to_vec(),
+                view(&c, "covs", &[Some(t), Some(n), Some(n)])?.to_vec(),
+            )),
+            (None, None) => None,
+            _ => {
+                return Err(pyo3::exceptions::PyValueError::new_err(
+                    "give both means and covs, or neither",
+                ))
+            }
+        };
+        self.inner.set_linearization_hint(hint).map_err(to_py)
+    }
+
     /// `(T+1, n)` posterior means of the last E-step (row 0 = `z_0`).
     fn means<'py>(&self, py: Python<'py>) -> PyResult<Out<'py>> {
         let n = self.n_state();

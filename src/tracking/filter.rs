@@ -105,7 +105,9 @@ pub(crate) fn sigma_points(m: &[f64], l: &DMatrix<f64>, out: &mut [f64]) {
 /// measurements, is more likely wrong, and nothing is gated).
 ///
 /// `relinearize`: at most this many iterated posterior linearisations of the update where
-/// the first one does not hold (0: the paper's single unscented update).
+/// the first one does not hold (0: the paper's single unscented update). `hint`: a
+/// position mean and covariance (`n`, `n × n`) near this frame's posterior, used to
+/// linearise where the prior is too broad (see [`hinted_update`]).
 ///
 /// # Errors
 /// Numerical error if `P` is not positive definite; emission errors.
@@ -118,6 +120,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
     x_t: &[f64],
     gate: Option<f64>,
     relinearize: usize,
+    hint: Option<(&[f64], &[f64])>,
     frame: usize,
     ws: &mut Workspace,
     mask: &mut [u8],
@@ -176,6 +179,35 @@ pub(crate) fn step<E: Emission + ?Sized>(
     }
     ws.used
         .extend((0..n_x).filter(|&j| mask[j] == status::USED));
+    if let Some((hm, hv)) = hint {
+        let invisible = mask.iter().filter(|&&m| m == status::INVISIBLE).count();
+        let measured = ws.used.len() + invisible;
+        let broad = measured > 0 && 5 * invisible > measured;
+        // (the other sign of a broad prior, a first update that does not hold, is tested
+        // below once that update exists)
+        if broad {
+            if let Some(up) = hinted_update(
+                em,
+                zfull.as_slice(),
+                &l_full,
+                x_t,
+                &vx_eff,
+                hm,
+                hv,
+                relinearize,
+                frame,
+                mask,
+                stats,
+                ws,
+            )? {
+                let log_det_vx: f64 = ws.used.iter().map(|&j| vx_eff[j].ln()).sum();
+                stats.log_lik += up.log_lik - 0.5 * log_det_vx;
+                mu_out.copy_from_slice(up.mu.as_slice());
+                v_out.copy_from_slice(up.v.as_slice());
+                return Ok(());
+            }
+        }
+    }
     let np = ws.used.len();
     stats.used += np;
     if np == 0 {
@@ -219,12 +251,40 @@ pub(crate) fn step<E: Emission + ?Sized>(
     if relinearize > 0 {
         // the whitened prediction of the linear model at z̄: x̄ (first pass)
         let xhat: Vec<f64> = ws.used.iter().map(|&j| ws.xbar[j]).collect();
+        if let Some((hm, hv)) = hint {
+            let mut gx = vec![0.0; n_x];
+            let err = linearisation_error(em, &up, &xhat, &vx_eff, &mut gx, ws)?;
+            if err.is_nan() || err > RELIN_THRESHOLD {
+                stats.used -= np;
+                if let Some(better) = hinted_update(
+                    em,
+                    zfull.as_slice(),
+                    &l_full,
+                    x_t,
+                    &vx_eff,
+                    hm,
+                    hv,
+                    relinearize,
+                    frame,
+                    mask,
+                    stats,
+                    ws,
+                )? {
+                    let log_det_vx: f64 = ws.used.iter().map(|&j| vx_eff[j].ln()).sum();
+                    stats.log_lik += better.log_lik - 0.5 * log_det_vx;
+                    mu_out.copy_from_slice(better.mu.as_slice());
+                    v_out.copy_from_slice(better.v.as_slice());
+                    return Ok(());
+                }
+                stats.used += np;
+            }
+        }
         if let Some(better) = relinearized(
             em,
             zfull.as_slice(),
             &l_full,
             x_t,
-            &scale,
+            &vx_eff,
             xhat,
             &up,
             relinearize,
@@ -241,6 +301,74 @@ pub(crate) fn step<E: Emission + ?Sized>(
     mu_out.copy_from_slice(up.mu.as_slice());
     v_out.copy_from_slice(up.v.as_slice());
     Ok(())
+}
+
+/// The update of a frame whose prior is too broad for the unscented transform (e.g. after a
+/// stretch without detections under the position-velocity model, whose sigma points then
+/// leave the cameras' view): iterated posterior linearisation started from the `hint`
+/// `(μ_h, V_h)` of the position (e.g. the random walk's smoothed posterior of this frame)
+/// instead of from the prior. The prior itself is unchanged, so the filter and the smoother
+/// stay those of the model. Re-derives which measured entries are predictable (statuses in
+/// `mask`, counts in `stats`); `None` (nothing changed) if the linearisation fails.
+#[allow(clippy::too_many_arguments)]
+fn hinted_update<E: Emission + ?Sized>(
+    em: &E,
+    mbar: &[f64],
+    l_full: &DMatrix<f64>,
+    x_t: &[f64],
+    vx_eff: &[f64],
+    hm: &[f64],
+    hv: &[f64],
+    relinearize: usize,
+    frame: usize,
+    mask: &mut [u8],
+    stats: &mut FilterStats,
+    ws: &mut Workspace,
+) -> Result<Option<Update>> {
+    let n = em.n_state();
+    let n_x = x_t.len();
+    let before: Vec<usize> = ws.used.clone();
+    ws.used.clear();
+    ws.used
+        .extend((0..n_x).filter(|&j| mask[j] == status::USED || mask[j] == status::INVISIBLE));
+    let measured = ws.used.len();
+    let hmu = DVector::from_column_slice(hm);
+    let hvm = DMatrix::from_column_slice(n, n, hv);
+    let mut xhat = Vec::new();
+    let Some(nu) = linearize_about(
+        em, mbar, l_full, x_t, vx_eff, &hmu, &hvm, &mut xhat, true, ws,
+    )?
+    else {
+        ws.used = before;
+        return Ok(None);
+    };
+    let first = linear_update(mbar, l_full, n, &ws.ytil, &nu, &mut ws.gram, frame)?;
+    let up = relinearized(
+        em,
+        mbar,
+        l_full,
+        x_t,
+        vx_eff,
+        xhat,
+        &first,
+        relinearize,
+        frame,
+        ws,
+    )?
+    .unwrap_or(first);
+    let was_invisible = mask.iter().filter(|&&m| m == status::INVISIBLE).count();
+    for m in mask.iter_mut() {
+        if *m == status::USED {
+            *m = status::INVISIBLE;
+        }
+    }
+    for &j in &ws.used {
+        mask[j] = status::USED;
+    }
+    stats.invisible = stats.invisible + (measured - ws.used.len()) - was_invisible;
+    stats.used += ws.used.len();
+    stats.relinearized_frames += 1;
+    Ok(Some(up))
 }
 
 /// The result of one linear(ised) Kalman update.
@@ -373,7 +501,7 @@ fn relinearized<E: Emission + ?Sized>(
     mbar: &[f64],
     l_full: &DMatrix<f64>,
     x_t: &[f64],
-    scale: &[f64],
+    vx_eff: &[f64],
     mut xhat: Vec<f64>,
     first: &Update,
     max_iter: usize,
@@ -381,78 +509,22 @@ fn relinearized<E: Emission + ?Sized>(
     ws: &mut Workspace,
 ) -> Result<Option<Update>> {
     let n = em.n_state();
-    let n_x = x_t.len();
-    let np = ws.used.len();
-    let m2 = 2 * n;
-    let l = l_full.view((0, 0), (n, n)).into_owned();
-    let zbar = &mbar[..n];
-    let mut gx = vec![0.0; n_x];
+    let mut gx = vec![0.0; x_t.len()];
     let mut best: Option<Update> = None;
     for _ in 0..max_iter {
         let cur = best.as_ref().unwrap_or(first);
-        // linearisation error at μ: g(μ) against x̂ + D s[..n] (whitened)
-        em.eval_batch(&cur.mu.as_slice()[..n], &mut gx)?;
-        let mut err = 0.0;
-        for (q, &j) in ws.used.iter().enumerate() {
-            let lin: f64 = (0..n).map(|i| ws.ytil[i * np + q] * cur.s[i]).sum();
-            let e = (gx[j] - xhat[q]) * scale[q] - lin;
-            err += e * e;
-        }
-        let mean_err = err / np as f64;
+        let mean_err = linearisation_error(em, cur, &xhat, vx_eff, &mut gx, ws)?;
         if mean_err.is_nan() || mean_err <= RELIN_THRESHOLD {
             break; // NaN: a marker is no longer predictable; keep what we have
         }
-        // Unscented linearisation about the posterior.
         let vzz = cur.v.view((0, 0), (n, n)).into_owned();
-        let Ok(lj) = cholesky(vzz.as_slice(), n, &String::new) else {
+        let mu_j = cur.mu.rows(0, n).into_owned();
+        let Some(nu) = linearize_about(
+            em, mbar, l_full, x_t, vx_eff, &mu_j, &vzz, &mut xhat, false, ws,
+        )?
+        else {
             break;
         };
-        sigma_points(&cur.mu.as_slice()[..n], &lj, &mut ws.sigma);
-        em.eval_batch(&ws.sigma, &mut ws.x)?;
-        let inv = 1.0 / m2 as f64;
-        let mut xb = vec![0.0; np];
-        for row in ws.x.chunks_exact(n_x) {
-            for (q, &j) in ws.used.iter().enumerate() {
-                xb[q] += row[j];
-            }
-        }
-        xb.iter_mut().for_each(|v| *v *= inv);
-        if xb.iter().any(|v| !v.is_finite()) {
-            break;
-        }
-        // F (rows: sigma-point pairs) and E as in `step`, about the posterior.
-        let sq = (0.5 * inv).sqrt();
-        let mut f = DMatrix::zeros(n, np);
-        for i in 0..n {
-            let xp = &ws.x[i * n_x..(i + 1) * n_x];
-            let xm = &ws.x[(n + i) * n_x..(n + i + 1) * n_x];
-            let dst_e = &mut ws.ytil[(n + i) * np..(n + i + 1) * np];
-            for (q, &j) in ws.used.iter().enumerate() {
-                f[(i, q)] = (xp[j] - xm[j]) * scale[q] * sq;
-                dst_e[q] = (xp[j] + xm[j] - 2.0 * xb[q]) * scale[q] * sq;
-            }
-        }
-        // A = F L_j⁻¹ (whitened); D = A L, so Dᵀ = Gᵀ F with G = L_j⁻¹ L.
-        let Some(g) = lj.solve_lower_triangular(&l) else {
-            break;
-        };
-        let d = g.transpose() * &f;
-        for i in 0..n {
-            for q in 0..np {
-                ws.ytil[i * np + q] = d[(i, q)];
-            }
-        }
-        // x̂ = x̄_j + A (z̄ − μ_j), whitened; ν̃ = x̃ − x̂.
-        let diff = DVector::from_fn(n, |r, _| zbar[r] - cur.mu[r]);
-        let Some(c) = lj.solve_lower_triangular(&diff) else {
-            break;
-        };
-        let shift = f.transpose() * c;
-        let mut nu = DVector::zeros(np);
-        for (q, &j) in ws.used.iter().enumerate() {
-            xhat[q] = xb[q] + shift[q] / scale[q];
-            nu[q] = (x_t[j] - xhat[q]) * scale[q];
-        }
         best = Some(linear_update(
             mbar,
             l_full,
@@ -464,6 +536,118 @@ fn relinearized<E: Emission + ?Sized>(
         )?);
     }
     Ok(best)
+}
+
+/// Mean squared whitened error of the linearisation in `ws.ytil` / `xhat` at the posterior
+/// mean of `up`: `g(μ)` against `x̂ + D s[..n]`, over the entries of `ws.used`.
+fn linearisation_error<E: Emission + ?Sized>(
+    em: &E,
+    up: &Update,
+    xhat: &[f64],
+    vx_eff: &[f64],
+    gx: &mut [f64],
+    ws: &Workspace,
+) -> Result<f64> {
+    let n = em.n_state();
+    let np = ws.used.len();
+    em.eval_batch(&up.mu.as_slice()[..n], gx)?;
+    let mut err = 0.0;
+    for (q, &j) in ws.used.iter().enumerate() {
+        let lin: f64 = (0..n).map(|i| ws.ytil[i * np + q] * up.s[i]).sum();
+        let e = (gx[j] - xhat[q]) / vx_eff[j].sqrt() - lin;
+        err += e * e;
+    }
+    Ok(err / np.max(1) as f64)
+}
+
+/// Statistical linearisation of `g` by the unscented transform about `N(μ_j, V_j)` (position
+/// part), expressed for the update of the prior `(m̄, L̃)`: fills `ws.ytil` with
+/// `Ỹ = [Dᵀ; Eᵀ]` (whitened; `A = F L_j⁻¹` the slope, `D = A L`, `E` the residual's factor)
+/// and `xhat` with `x̂ = x̄_j + A (z̄ − μ_j)` for the entries of `ws.used`, and returns
+/// `ν̃ = (x − x̂) / √V_x`. With `drop_invisible`, entries that `g` cannot predict at some
+/// sigma point are first removed from `ws.used` (and returned to the caller by the changed
+/// `ws.used`); otherwise such an entry makes the linearisation fail (`None`).
+#[allow(clippy::too_many_arguments)]
+fn linearize_about<E: Emission + ?Sized>(
+    em: &E,
+    mbar: &[f64],
+    l_full: &DMatrix<f64>,
+    x_t: &[f64],
+    vx_eff: &[f64],
+    mu_j: &DVector<f64>,
+    v_j: &DMatrix<f64>,
+    xhat: &mut Vec<f64>,
+    drop_invisible: bool,
+    ws: &mut Workspace,
+) -> Result<Option<DVector<f64>>> {
+    let n = em.n_state();
+    let n_x = x_t.len();
+    let m2 = 2 * n;
+    let Ok(lj) = cholesky(v_j.as_slice(), n, &String::new) else {
+        return Ok(None);
+    };
+    sigma_points(mu_j.as_slice(), &lj, &mut ws.sigma);
+    em.eval_batch(&ws.sigma, &mut ws.x)?;
+    let inv = 1.0 / m2 as f64;
+    ws.xbar.fill(0.0);
+    for row in ws.x.chunks_exact(n_x) {
+        for &j in &ws.used {
+            ws.xbar[j] += row[j];
+        }
+    }
+    for &j in &ws.used {
+        ws.xbar[j] *= inv;
+    }
+    if drop_invisible {
+        let xbar = &ws.xbar;
+        ws.used.retain(|&j| xbar[j].is_finite());
+    } else if ws.used.iter().any(|&j| !ws.xbar[j].is_finite()) {
+        return Ok(None);
+    }
+    let np = ws.used.len();
+    if np == 0 {
+        return Ok(None);
+    }
+    let l = l_full.view((0, 0), (n, n));
+    let Some(g) = lj.solve_lower_triangular(&l.into_owned()) else {
+        return Ok(None);
+    };
+    let diff = DVector::from_fn(n, |r, _| mbar[r] - mu_j[r]);
+    let Some(c) = lj.solve_lower_triangular(&diff) else {
+        return Ok(None);
+    };
+    ws.ytil.clear();
+    ws.ytil.resize(m2 * np, 0.0);
+    // F (rows: sigma-point pairs, whitened) and E as in `step`, about (μ_j, V_j).
+    let sq = (0.5 * inv).sqrt();
+    let mut f = DMatrix::zeros(n, np);
+    for i in 0..n {
+        let xp = &ws.x[i * n_x..(i + 1) * n_x];
+        let xm = &ws.x[(n + i) * n_x..(n + i + 1) * n_x];
+        let dst_e = &mut ws.ytil[(n + i) * np..(n + i + 1) * np];
+        for (q, &j) in ws.used.iter().enumerate() {
+            let scale = 1.0 / vx_eff[j].sqrt();
+            f[(i, q)] = (xp[j] - xm[j]) * scale * sq;
+            dst_e[q] = (xp[j] + xm[j] - 2.0 * ws.xbar[j]) * scale * sq;
+        }
+    }
+    // A = F L_j⁻¹ (whitened); D = A L, so Dᵀ = Gᵀ F with G = L_j⁻¹ L.
+    let d = g.transpose() * &f;
+    for i in 0..n {
+        for q in 0..np {
+            ws.ytil[i * np + q] = d[(i, q)];
+        }
+    }
+    // x̂ = x̄_j + A (z̄ − μ_j); ν̃ = (x − x̂) / √V_x.
+    let shift = f.transpose() * c;
+    xhat.clear();
+    let mut nu = DVector::zeros(np);
+    for (q, &j) in ws.used.iter().enumerate() {
+        let sd = vx_eff[j].sqrt();
+        xhat.push(ws.xbar[j] + shift[q] * sd);
+        nu[q] = (x_t[j] - xhat[q]) / sd;
+    }
+    Ok(Some(nu))
 }
 
 /// The innovation gate: per block of entries (one image point), the squared Mahalanobis

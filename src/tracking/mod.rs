@@ -163,6 +163,9 @@ pub struct Tracker<E: Emission> {
     /// Position marginals of the last E-step when `order > 1` (`(T+1) × n`, `(T+1) × n × n`).
     zmeans: Vec<f64>,
     zcovs: Vec<f64>,
+    /// Position moments `(T+1) × n`, `(T+1) × n × n` to linearise about where the prior is
+    /// too broad (see [`Self::set_linearization_hint`]).
+    hint: Option<(Vec<f64>, Vec<f64>)>,
 }
 
 /// Default maximum number of iterated posterior linearisations per frame (see
@@ -210,6 +213,7 @@ impl<E: Emission> Tracker<E> {
             order: 1,
             zmeans: Vec::new(),
             zcovs: Vec::new(),
+            hint: None,
         })
     }
 
@@ -268,6 +272,24 @@ impl<E: Emission> Tracker<E> {
         self.order = order;
         self.means = vec![0.0; (self.n_frames + 1) * ns];
         self.covs = vec![0.0; (self.n_frames + 1) * ns * ns];
+        Ok(())
+    }
+
+    /// Position means `(T+1) × n` and covariances `(T+1) × n × n` (row 0 = `z_0`) near the
+    /// posterior, e.g. the random walk's smoothed posterior, used to linearise the update of
+    /// frames whose prior is too broad for the unscented transform (after a stretch without
+    /// detections under the position-velocity model). The model is unchanged: only where `g`
+    /// is linearised. `None` removes it.
+    ///
+    /// # Errors
+    /// Shape error for arrays of the wrong length.
+    pub fn set_linearization_hint(&mut self, hint: Option<(Vec<f64>, Vec<f64>)>) -> Result<()> {
+        if let Some((m, c)) = &hint {
+            let (n, steps) = (self.em.n_state(), self.n_frames + 1);
+            ensure_len(m.len(), steps * n, "hint means (T+1, n)")?;
+            ensure_len(c.len(), steps * n * n, "hint covariances (T+1, n, n)")?;
+        }
+        self.hint = hint;
         Ok(())
     }
 
@@ -344,6 +366,13 @@ impl<E: Emission> Tracker<E> {
                 &self.x[t * n_x..(t + 1) * n_x],
                 gate,
                 self.relinearize,
+                self.hint.as_ref().map(|(m, c)| {
+                    let n = self.em.n_state();
+                    (
+                        &m[(t + 1) * n..(t + 2) * n],
+                        &c[(t + 1) * n * n..(t + 2) * n * n],
+                    )
+                }),
                 t,
                 &mut ws,
                 &mut self.mask[t * n_x..(t + 1) * n_x],

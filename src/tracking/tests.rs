@@ -459,3 +459,60 @@ fn relinearisation_recovers_from_a_broad_prior() {
         "relinearised error {iterated} (single update {plain})"
     );
 }
+
+/// [`ExpEmission`] that cannot predict anything beyond |z| > 3 (like a marker behind a
+/// camera).
+#[derive(Debug, Clone)]
+struct LimitedEmission;
+impl Emission for LimitedEmission {
+    fn n_state(&self) -> usize {
+        2
+    }
+    fn n_meas(&self) -> usize {
+        4
+    }
+    fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
+        ExpEmission.eval_batch(states, out)?;
+        for (z, o) in states.chunks_exact(2).zip(out.chunks_exact_mut(4)) {
+            if z.iter().any(|v| v.abs() > 3.0) {
+                o.fill(f64::NAN);
+            }
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_hint_linearises_where_the_prior_is_too_broad() {
+    // Prior N(0, 25 I): every sigma point (±√2 · 5) is unpredictable, so the plain update
+    // sees nothing; linearised about a hint near the posterior, the same prior and
+    // measurement give the posterior near the truth. The prior (the model) is unchanged.
+    let truth = [1.4, -0.9];
+    let mut x = vec![0.0; 4];
+    ExpEmission.eval_batch(&truth, &mut x).unwrap();
+    let p = Params {
+        mu0: vec![0.0, 0.0],
+        v0: vec![25.0, 0.0, 0.0, 25.0],
+        vz: vec![1e-9, 0.0, 0.0, 1e-9],
+        vx: vec![1e-4; 4],
+    };
+    let mut tr = Tracker::new(LimitedEmission, x.clone()).unwrap();
+    let plain = tr.filter(&p, None).unwrap();
+    assert_eq!((plain.used, plain.invisible), (0, 4));
+    assert!(tr.means()[2..4].iter().all(|v| v.abs() < 1e-6));
+    let hint_m = vec![0.0, 0.0, 1.2, -0.7];
+    let hint_c = vec![0.0, 0.0, 0.0, 0.0, 0.1, 0.0, 0.0, 0.1];
+    assert!(tr
+        .set_linearization_hint(Some((hint_m.clone(), vec![0.0; 3])))
+        .is_err());
+    tr.set_linearization_hint(Some((hint_m, hint_c))).unwrap();
+    let hinted = tr.filter(&p, None).unwrap();
+    assert_eq!(
+        (hinted.used, hinted.invisible, hinted.relinearized_frames),
+        (4, 0, 1)
+    );
+    assert!(tr.mask().iter().all(|&m| m == status::USED));
+    let m = &tr.means()[2..4];
+    let err = ((m[0] - truth[0]).powi(2) + (m[1] - truth[1]).powi(2)).sqrt();
+    assert!(err < 0.01, "hinted posterior {m:?}");
+}

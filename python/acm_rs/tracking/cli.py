@@ -46,11 +46,19 @@ def _cmd_track(args: argparse.Namespace) -> int:
         f"acm-rs track: {skeleton.name} ({skeleton.n_markers} markers), {len(rig)} cameras, "
         f"{points.shape[1]} frames from {', '.join(str(p) for p in args.dlc)}"
     )
+    if args.bundle and args.motion == "velocity":
+        raise ValueError(
+            "--bundle: acm-smooth runs the paper's random walk only; drop --motion velocity "
+            "or track in Python (without --bundle)"
+        )
     if args.bundle:
         path = write_bundle(out.with_suffix(".bundle.npz"), rig, skeleton, points, **opts)
         print(f"  wrote {path}; smooth it with: acm-smooth {path}")
         return 0
-    res = track(rig, skeleton, points, method=args.method, progress=True, **opts)
+    res = track(
+        rig, skeleton, points, method=args.method, progress=True, motion=args.motion,
+        noise_model=args.noise_model, **opts,
+    )  # fmt: skip
     res.info["frames"] = ls.frames[sel]
     files = res.save(out)
     for fmt in args.export or []:
@@ -135,6 +143,15 @@ def add_subcommands(sub) -> None:
         "--method", choices=["ukf", "deterministic"], default="ukf",
         help="ukf (default): EM with the unscented Kalman filter and RTS smoother; "
         "deterministic: independent per-frame fits, for comparison",
+    )  # fmt: skip
+    p.add_argument(
+        "--motion", choices=["auto", "velocity", "random_walk"], default="auto",
+        help="motion model: position and velocity (auto, default: unless it fits worse than "
+        "the random walk) or the paper's random walk (docs/tracking.md)",
+    )  # fmt: skip
+    p.add_argument(
+        "--noise-model", choices=["gauss", "student"], default="gauss",
+        help="measurement noise: Gaussian (the paper's, with the outlier gate) or Student-t",
     )  # fmt: skip
     p.add_argument("--export", nargs="+", choices=["anipose", "nwb", "c3d"], help="also write")
     p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D exports")
