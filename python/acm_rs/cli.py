@@ -85,7 +85,7 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         print(f"  predictions: {low} labels below pcutoff {args.pcutoff} are not used")
     res = learn_skeleton(
         rig, skeleton, labels.points, body_weight=args.body_weight,
-        symmetric=not args.no_symmetry, marker_names=labels.bodyparts, progress=True,
+        symmetric=not args.no_symmetry, marker_names=labels.bodyparts, progress=None,
         likelihood=labels.likelihood, pcutoff=args.pcutoff,
     )  # fmt: skip
     out = Path(args.output)

@@ -202,11 +202,18 @@ def _deterministic(
     return poses[:, :3], poses[:, 3:].reshape(len(poses), skeleton.n_bones, 3)
 
 
+def _on_terminal(progress: bool | None) -> bool:
+    """``progress`` with None meaning "when stderr is a terminal"."""
+    if progress is None:
+        return bool(getattr(sys.stderr, "isatty", lambda: False)())
+    return bool(progress)
+
+
 class _Printer:
     """One line per EM iteration on stderr (or nothing)."""
 
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
+    def __init__(self, enabled: bool | None) -> None:
+        self.enabled = _on_terminal(enabled)
 
     def __call__(self, iteration: int, delta: float, seconds: float, stats: dict) -> bool:
         if self.enabled:
@@ -279,7 +286,7 @@ def track(
     joint_limits: bool = True,
     max_iter: int = 100,
     tol: float = 0.05,
-    progress: bool = True,
+    progress: bool | None = False,
     method: str = "ukf",
     gate: float | None = DEFAULT_GATE,
     normalization: Normalization | None = None,
@@ -328,8 +335,9 @@ def track(
         DeepLabCut mistakes get small weights and do not inflate ``V_x``.
     dof : float
         Degrees of freedom of the Student-t model.
-    progress : bool
-        Print one line per EM iteration to stderr.
+    progress : bool or None
+        Print one line per EM iteration and a summary to stderr; None: only when stderr is
+        a terminal (what the command line passes); default False (quiet).
     gate : float or None
         Innovation gate against confident outliers: an image point whose innovation lies
         outside this probability mass of its predicted distribution is ignored in that frame
@@ -395,7 +403,7 @@ def track(
                 "normalization": _norm_dict(norm), "seconds": time.perf_counter() - t_start,
             },
         )  # fmt: skip
-        if progress:
+        if _on_terminal(progress):
             print(result.summary(), file=sys.stderr)
         return result
 
@@ -444,6 +452,6 @@ def track(
             file=sys.stderr,
         )
     _warn_implausible_fit(result, fit_px)
-    if progress:
+    if _on_terminal(progress):
         print(result.summary(), file=sys.stderr)
     return result
