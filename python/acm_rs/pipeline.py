@@ -120,7 +120,7 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
     spec = BoardSpec.from_dict(config.board())
     det = detect(
         [sources[n] for n in names], spec, camera_names=names,
-        cache=out.with_suffix(".detections.npz"), progress=True,
+        cache=out.with_suffix(".detections.npz"), progress=None,
     )  # fmt: skip
     res = calibrate(det.corners, spec.board_points, det.image_sizes, camera_names=names)
     res.save(out)
@@ -129,8 +129,13 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
     return out
 
 
-def _load_rig(config: ProjectConfig, session: Session | None = None):
+def _load_rig(config: ProjectConfig, session: Session | None = None, cameras=None):
+    """The calibrated rig in the order of ``cameras`` (default: the session's cameras, else
+    ``cameras.names``, else the calibration's), cameras matched by name
+    (:func:`acm_rs.project.match_cameras`). Returns ``(rig, {camera: (calibration name,
+    how)})``."""
     from .camera import CameraRig
+    from .project import match_cameras
 
     path = session.calibration if session is not None else _calibration_path(config)
     if path is None or not Path(path).is_file():
@@ -138,8 +143,14 @@ def _load_rig(config: ProjectConfig, session: Session | None = None):
             f"no calibration file {config.paths['calibration']} in the session or project; "
             "run `acm-rs run-all` (calibrate step) or copy an anipose calibration.toml there"
         )
-    names = session.cameras if session is not None else (config.cameras["names"] or None)
-    return CameraRig.load(path, names=names)
+    if cameras is None:
+        cameras = session.cameras if session is not None else (config.cameras["names"] or None)
+    calib_names = [c.name for c in CameraRig.load(path)]
+    if cameras is None:
+        cameras = calib_names
+    mapping = match_cameras(list(cameras), calib_names, config.cameras["regex"])
+    rig = CameraRig.load(path, names=[mapping[c][0] for c in cameras])
+    return rig, mapping
 
 
 def _generic_model(config: ProjectConfig):
@@ -156,33 +167,49 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
 
     Without manual labels the generic model is copied (and the log says so).
     """
-    from .dlc import read_labels
+    from .dlc import concat_labels, read_labels
     from .learning import learn_skeleton
-    from .project import LABEL_SUFFIXES, _files_by_camera
+    from .project import camera_table, find_manual_labels, read_dlc_config
 
     out = config.root / SKELETON_NAME
     if _skip(out, overwrite, "learn"):
         return out
     generic = _generic_model(config)
     folder = config.root / config.paths["manual_labels"]
-    files = _files_by_camera(folder, LABEL_SUFFIXES, config.camera_regex) if folder.is_dir() else {}
-    if not files:
-        _say(f"learn: no manual labels in {folder}; using the generic {generic.name} model")
+    dlc = read_dlc_config(config.root)
+    groups = find_manual_labels(folder, config.camera_regex, dlc.get("scorer") if dlc else None)
+    if not groups:
+        _say(
+            f"learn: no manual labels in {folder} (files or <video>/CollectedData_*.h5|.csv); "
+            f"using the generic {generic.name} model as skeleton.toml"
+        )
         generic.save(out)
         return out
-    rig = _load_rig(config)
-    names = [c.name for c in rig]
-    missing = [n for n in names if n not in files]
-    if missing:
-        raise ValueError(f"{folder}: no label file for camera(s) {missing}; found {sorted(files)}")
-    labels = read_labels([files[n] for n in names])
+    cams = sorted({c for g in groups.values() for c in g})
+    names = list(config.cameras["names"]) or cams
+    unknown = sorted(set(cams) - set(names))
+    if unknown:
+        raise ValueError(f"{folder}: labels of camera(s) {unknown}, not in cameras.names {names}")
+    rig, mapping = _load_rig(config, cameras=names)
+    for name, files in sorted(groups.items()):
+        table = camera_table(mapping, {f"labels {name or folder.name}": files})
+        for line in table.splitlines():
+            _say("learn: " + line)
+    sets = [
+        read_labels([g.get(c) for c in names], individual=config.project.get("individual"))
+        for g in groups.values()
+    ]
+    labels = concat_labels(sets)
     res = learn_skeleton(
         rig, generic, labels.points, body_weight=config.project.get("body_weight"),
-        marker_names=labels.bodyparts, progress=True, likelihood=labels.likelihood,
+        marker_names=labels.bodyparts, progress=None, likelihood=labels.likelihood,
         pcutoff=config.tracking["pcutoff"],
     )  # fmt: skip
     res.skeleton.save(out)
-    _say(f"learn: {labels.points.shape[1]} frames, RMS {res.rms:.2f} px -> {out}")
+    _say(
+        f"learn: {labels.points.shape[1]} labelled frames of {len(groups)} recording(s), "
+        f"RMS {res.rms:.2f} px -> {out}"
+    )
     for line in res.summary().splitlines():
         if "WARNING" in line or "note:" in line:
             _say("learn: " + line.strip())
@@ -209,15 +236,23 @@ def step_track(
         raise FileNotFoundError(
             f"{session.path / config.paths['labels']}: no DeepLabCut predictions for this session"
         )
-    rig = _load_rig(config, session)
+    from .project import camera_table
+
+    rig, mapping = _load_rig(config, session)
+    table = camera_table(mapping, {"video": session.videos, "2D poses": session.labels})
+    for line in table.splitlines():
+        _say(f"track {session.name}: " + line)
     skel_path = config.root / SKELETON_NAME
     skeleton = Skeleton.load(skel_path) if skel_path.is_file() else _generic_model(config)
-    ls = read_labels([session.labels[c] for c in session.cameras])
+    ls = read_labels(
+        [session.labels[c] for c in session.cameras], individual=config.project.get("individual")
+    )
     dt = int(config.tracking["dt"])
     lik = ls.likelihood[:, ::dt] if ls.likelihood is not None else None
     res = track(
         rig, skeleton, ls.points[:, ::dt], likelihood=lik, pcutoff=config.tracking["pcutoff"],
         max_iter=config.em["max_iter"], tol=config.em["tol"], marker_names=ls.bodyparts,
+        progress=None,
     )  # fmt: skip
     res.info["frames"] = ls.frames[::dt]
     folder.mkdir(parents=True, exist_ok=True)
@@ -229,7 +264,8 @@ def step_track(
 def step_export(
     config: ProjectConfig, session: Session, overwrite: bool = False, out: Path | None = None
 ) -> list[Path]:
-    """anipose CSV (+ variance sidecar) always; NWB and C3D when ``tracking.fps`` is set."""
+    """anipose CSV (+ variance sidecar) always; NWB, C3D and movement netCDF when the frame
+    rate is known (``tracking.fps`` or the videos' metadata)."""
     from . import export
     from .tracking import PoseResult
 
@@ -239,8 +275,13 @@ def step_export(
         return [csv]
     res = PoseResult.load(folder / POSE_NAME)
     files = export.to_anipose_csv(res, csv)
-    fps = config.tracking.get("fps")
+    video_fps = session_fps(config, session)
+    fps = video_fps / int(config.tracking["dt"]) if video_fps else None  # the tracked frames
     if fps:
+        try:
+            files.append(export.to_movement_file(res, folder / "pose_movement.nc", fps=video_fps))
+        except ImportError as exc:  # xarray/netCDF are the optional extra [movement]
+            _say(f"export {session.name}: no movement file ({exc})")
         files.append(
             export.to_nwb(
                 res,
@@ -251,9 +292,22 @@ def step_export(
         )
         files.append(export.to_c3d(res, folder / "pose.c3d", fps, joints=True))
     else:
-        _say(f"export {session.name}: tracking.fps not set; NWB and C3D skipped")
+        _say(
+            f"export {session.name}: no frame rate (tracking.fps unset, no video metadata); "
+            "NWB, C3D and movement files skipped"
+        )
     _say(f"export {session.name}: {', '.join(f.name for f in files)}")
     return files
+
+
+def session_fps(config: ProjectConfig, session: Session) -> float | None:
+    """Frame rate (Hz) of a session's videos: ``tracking.fps``, else the videos' metadata."""
+    from .project import videos_fps
+
+    fps = config.tracking.get("fps")
+    if fps:
+        return float(fps)
+    return videos_fps([session.videos[c] for c in session.cameras if c in session.videos])
 
 
 def step_plot(
@@ -267,7 +321,8 @@ def step_plot(
     if _skip(folder, overwrite, f"plot {session.name}"):
         return []
     res = PoseResult.load(_session_output(session, out) / POSE_NAME)
-    files = plot_all(res, folder, frame_rate=config.tracking.get("fps"))
+    fps = session_fps(config, session)
+    files = plot_all(res, folder, frame_rate=fps / int(config.tracking["dt"]) if fps else None)
     _say(f"plot {session.name}: {len(files)} figures in {folder}")
     if session.videos and all(c in session.videos for c in session.cameras):
         from .plots import overlay_video

@@ -50,7 +50,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         path = write_bundle(out.with_suffix(".bundle.npz"), rig, skeleton, points, **opts)
         print(f"  wrote {path}; smooth it with: acm-smooth {path}")
         return 0
-    res = track(rig, skeleton, points, method=args.method, progress=True, **opts)
+    res = track(rig, skeleton, points, method=args.method, progress=None, **opts)
     res.info["frames"] = ls.frames[sel]
     files = res.save(out)
     for fmt in args.export or []:
@@ -62,6 +62,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
     for f in files:
         print(f"  wrote {f}")
     return 0
+
+
+FORMATS = ("anipose", "nwb", "c3d", "npz", "movement")
 
 
 def _export(res, fmt: str, out: Path, rate: float | None, points: str) -> list[Path]:
@@ -84,7 +87,10 @@ def _export(res, fmt: str, out: Path, rate: float | None, points: str) -> list[P
         return [export.to_c3d(res, out.with_suffix(".c3d"), rate, joints=True)]
     if fmt == "npz":
         return [export.to_npz(res, out.with_suffix(".npz"))]
-    raise ValueError(f"unknown export format {fmt!r}; choose from anipose, nwb, c3d, npz")
+    if fmt == "movement":
+        path = out.with_name(out.stem + "_movement.nc")
+        return [export.to_movement_file(res, path, fps=rate, points=points)]
+    raise ValueError(f"unknown export format {fmt!r}; choose from {', '.join(FORMATS)}")
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
@@ -136,8 +142,11 @@ def add_subcommands(sub) -> None:
         help="ukf (default): EM with the unscented Kalman filter and RTS smoother; "
         "deterministic: independent per-frame fits, for comparison",
     )  # fmt: skip
-    p.add_argument("--export", nargs="+", choices=["anipose", "nwb", "c3d"], help="also write")
-    p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D exports")
+    p.add_argument(
+        "--export", nargs="+", choices=[f for f in FORMATS if f != "npz"],
+        help="also write these formats (movement: netCDF for the movement toolbox)",
+    )  # fmt: skip
+    p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D/movement exports")
     p.add_argument("--plots", help="folder for the tracking figures")
     p.add_argument("--bundle", action="store_true", help="only write OUT.bundle.npz for acm-smooth")
     p.add_argument("-o", "--output", help="output prefix, e.g. out/session1")
@@ -151,14 +160,17 @@ def add_subcommands(sub) -> None:
     e = sub.add_parser("export", help="convert a tracking result (.npz) to other formats")
     e.add_argument("input", nargs="?", help="result written by acm-rs track (OUT.npz)")
     e.add_argument(
-        "--format", nargs="+", choices=["anipose", "nwb", "c3d", "npz"],
-        help="output formats (anipose CSV, NWB/ndx-pose, C3D, NPZ)",
+        "--format", nargs="+", choices=FORMATS,
+        help="output formats (anipose CSV, NWB/ndx-pose, C3D, NPZ, movement netCDF)",
     )  # fmt: skip
     e.add_argument(
         "--points", choices=["joints", "markers"], default="joints",
         help="export the joints (default) or the surface markers",
     )  # fmt: skip
-    e.add_argument("--rate", type=float, help="frame rate (Hz), needed for C3D")
+    e.add_argument(
+        "--rate", type=float,
+        help="video frame rate (Hz): needed for C3D; time in seconds for NWB and movement",
+    )  # fmt: skip
     e.add_argument("-o", "--output", help="output prefix (default: next to the input)")
     add_project_option(e, "export")
     e.set_defaults(func=lambda a: project_step_or(a, "export", _cmd_export, ("input", "--format")))
