@@ -129,17 +129,24 @@ def read_dlc_table(path: str | Path, individual: str | None = None):
         cols = df.columns
     if cols.nlevels != 3:
         raise ValueError(f"{p}: unexpected column levels {cols.nlevels} (expected 3 or 4)")
-    bodyparts = list(dict.fromkeys(cols.get_level_values(1)))
+    # coordinate columns only: Lightning Pose adds a "set" column, EKS "x_ens_var" etc.
+    xs = [c for c in cols if c[2] == "x"]
+    if not xs:
+        raise ValueError(f"{p}: no x/y columns")
+    scorer = xs[0][0]
+    bodyparts = list(dict.fromkeys(c[1] for c in xs if c[0] == scorer))
     n = len(df)
     points = np.full((n, len(bodyparts), 2), np.nan)
-    has_lik = "likelihood" in set(cols.get_level_values(2))
+    has_lik = (scorer, bodyparts[0], "likelihood") in set(cols)
     lik = np.full((n, len(bodyparts)), np.nan) if has_lik else None
-    scorer = cols.get_level_values(0)[0]
-    for j, bp in enumerate(bodyparts):
-        for c, name in enumerate(("x", "y")):
-            points[:, j, c] = df[(scorer, bp, name)].to_numpy(dtype=float)
-        if lik is not None:
-            lik[:, j] = df[(scorer, bp, "likelihood")].to_numpy(dtype=float)
+    try:
+        for j, bp in enumerate(bodyparts):
+            for c, name in enumerate(("x", "y")):
+                points[:, j, c] = df[(scorer, bp, name)].to_numpy(dtype=float)
+            if lik is not None:
+                lik[:, j] = df[(scorer, bp, "likelihood")].to_numpy(dtype=float)
+    except KeyError as exc:
+        raise ValueError(f"{p}: column {exc} is missing (every body part needs x and y)") from None
     frames = np.array([_frame_number(lab, i) for i, lab in enumerate(df.index)], dtype=np.int64)
     if len(set(frames.tolist())) != len(frames):
         raise ValueError(f"{p}: two rows have the same frame number")

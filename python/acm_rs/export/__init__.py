@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from .anipose_csv import anipose_columns, to_anipose_csv, variance_path
 from .c3d import to_c3d
-from .npz import read_npz, to_npz
 from .movement import to_movement, to_movement_file
+from .npz import read_npz, to_npz
 from .nwb import to_nwb
 
 __all__ = [
