@@ -12,7 +12,8 @@ learn          ``paths.manual_labels`` (DeepLabCut CollectedData)   ``skeleton.t
 track          session ``paths.labels`` (DeepLabCut predictions)    ``<output>/pose.npz``
 export         ``pose.npz``                                         ``pose_3d.csv``, ``.nwb``,
                                                                     ``.c3d`` (with ``fps``)
-plot           ``pose.npz``                                         ``<output>/plots/*.png``
+plot           ``pose.npz``                                         ``<output>/plots/*.png``,
+                                                                    ``view.html``
 =============  ==================================================  ===========================
 
 :func:`run_session` is the per-session function of :mod:`acm_rs.batch` (Dask).
@@ -322,7 +323,14 @@ def step_plot(
         return []
     res = PoseResult.load(_session_output(session, out) / POSE_NAME)
     fps = session_fps(config, session)
-    files = plot_all(res, folder, frame_rate=fps / int(config.tracking["dt"]) if fps else None)
+    rate = fps / int(config.tracking["dt"]) if fps else None  # of the tracked frames
+    files = plot_all(res, folder, frame_rate=rate)
+    try:
+        from .plots.viewer import view_html
+
+        files.append(view_html(res, folder / "view.html", fps=rate))
+    except ImportError as exc:  # plotly is the optional extra [view]
+        _say(f"plot {session.name}: no 3D viewer ({exc})")
     _say(f"plot {session.name}: {len(files)} figures in {folder}")
     if session.videos and all(c in session.videos for c in session.cameras):
         from .plots import overlay_video

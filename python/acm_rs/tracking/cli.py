@@ -106,8 +106,20 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    from ..plots.viewer import view_html
+    from .result import PoseResult
+
+    res = PoseResult.load(args.input)
+    out = Path(args.output) if args.output else Path(args.input).with_suffix(".html")
+    view_html(res, out, fps=args.fps, max_frames=args.max_frames)
+    print(f"acm-rs view: wrote {out} ({out.stat().st_size / 1e6:.1f} MB, opens offline)")
+    return 0
+
+
 def add_subcommands(sub) -> None:
-    """Add ``acm-rs track`` and ``acm-rs export`` to an argparse subparsers object."""
+    """Add ``acm-rs track``, ``acm-rs export`` and ``acm-rs view`` to an argparse subparsers
+    object."""
     from ..pipeline import add_project_option, project_step_or
 
     p = sub.add_parser(
@@ -174,6 +186,21 @@ def add_subcommands(sub) -> None:
     e.add_argument("-o", "--output", help="output prefix (default: next to the input)")
     add_project_option(e, "export")
     e.set_defaults(func=lambda a: project_step_or(a, "export", _cmd_export, ("input", "--format")))
+
+    v = sub.add_parser(
+        "view",
+        help="write one self-contained HTML file showing a result in 3D (animated, offline)",
+        description="3D skeleton with a time slider and play button, joints coloured by their "
+        "posterior SD, cameras and floor, and a per-joint trace panel. Needs plotly.",
+    )
+    v.add_argument("input", help="result written by acm-rs track (OUT.npz)")
+    v.add_argument("-o", "--output", help="HTML file to write (default: INPUT with .html)")
+    v.add_argument("--fps", type=float, help="video frame rate (Hz) for a time axis in seconds")
+    v.add_argument(
+        "--max-frames", type=int, default=1500,
+        help="animate at most this many frames (every k-th of longer results; default 1500)",
+    )  # fmt: skip
+    v.set_defaults(func=_cmd_view)
 
 
 __all__ = ["add_subcommands"]

@@ -1,0 +1,98 @@
+"""acm-rs view: one self-contained HTML file, rendered in headless Chromium when present."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+from acm_fixture import synthetic_result
+
+from acm_rs.cli import main
+
+pytest.importorskip("plotly")
+
+
+@pytest.fixture(scope="module")
+def result_file(tmp_path_factory):
+    res = synthetic_result(n_frames=30, seed=3)
+    path = tmp_path_factory.mktemp("view") / "pose.npz"
+    res.save(path)
+    return res, path
+
+
+def test_view_writes_one_offline_html(result_file, capsys):
+    res, path = result_file
+    assert main(["view", str(path), "--fps", "50", "--max-frames", "10"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    html = path.with_suffix(".html").read_text()
+    # plotly.js is embedded: no script or stylesheet is fetched from the network
+    assert not re.search(r"<script[^>]+src=", html)
+    assert not re.search(r"<link[^>]+href=\"?https?:", html)
+    assert "Plotly.newPlot" in html or "Plotly.addFrames" in html
+    # 30 frames at most 10 animated: every 3rd, one slider step per frame
+    assert html.count('"name":"27"') >= 1 and '"name":"28"' not in html
+    assert html.count('"method":"animate"') == 10 + 2  # slider steps + play + pause
+    # the joint drop-down lists every joint; the SD colour bar carries the unit
+    for name in res.joint_names:
+        assert f'"label":"{name}"' in html
+    assert "SD (cm)" in html
+    assert (
+        list(path.parent.iterdir()) == [path, path.with_suffix(".html")]
+        or len(list(path.parent.glob(".*"))) == 0
+    )  # no temporary file left
+
+
+def _chromium() -> str | None:
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _screenshot(html, png, size=(1400, 800)):
+    exe = _chromium()
+    if exe is None:
+        pytest.skip("headless Chromium (Debian package 'chromium') is not installed")
+    cmd = [
+        exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader", "--hide-scrollbars", f"--window-size={size[0]},{size[1]}",
+        "--virtual-time-budget=15000", f"--screenshot={png}", html.as_uri(),
+    ]  # fmt: skip
+    subprocess.run(cmd, check=True, capture_output=True, timeout=180)
+    import cv2
+
+    img = cv2.imread(str(png))
+    assert img is not None, "no screenshot"
+    return img[..., ::-1].astype(int)  # RGB
+
+
+def _near(img, rgb, tol=40):
+    return np.all(np.abs(img - np.array(rgb)) <= tol, axis=-1)
+
+
+def test_view_renders_in_headless_chromium(result_file, tmp_path):
+    from acm_rs.plots.viewer import view_html
+
+    res, _ = result_file
+    html = view_html(res, tmp_path / "view.html", fps=50)
+    img = _screenshot(html, tmp_path / "shot.png")
+    h, w, _ = img.shape
+    assert img.std() > 20, "blank page"
+    scene = img[: int(0.8 * h), : int(0.55 * w)]  # the 3D panel (the legend is on the right)
+    bones = _near(scene, (255, 120, 0), tol=35).sum()
+    floor = _near(scene, (225, 225, 225), tol=12).sum()
+    # viridis joint colours (the SD colour bar is left of the scene: exclude its columns)
+    joints = (
+        _near(scene[:, 120:], (122, 209, 81), 60) | _near(scene[:, 120:], (253, 231, 37), 60)
+    ).sum()
+    assert bones > 100, f"skeleton not drawn ({bones} orange pixels in the 3D panel)"
+    assert floor > 5000, f"arena floor not drawn ({floor} grey pixels)"
+    assert joints > 30, f"joints not drawn ({joints} viridis pixels)"
+    # the trace panel: the x (blue) mean line
+    trace = img[: int(0.8 * h), int(0.55 * w) : int(0.88 * w)]
+    assert _near(trace, (31, 119, 180), 30).sum() > 200
+    # a control: the same page without the skeleton has no orange in the scene
+    text = html.read_text().replace("rgb(255,120,0)", "rgb(255,255,255)")
+    (tmp_path / "control.html").write_text(text)
+    ctrl = _screenshot(tmp_path / "control.html", tmp_path / "control.png")
+    assert _near(ctrl[: int(0.8 * h), : int(0.55 * w)], (255, 120, 0), tol=35).sum() < bones / 10
