@@ -88,7 +88,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         f"acm-rs gapfill-eval: {args.input}, {X.shape[0]} frames, {X.shape[1]} markers, "
         f"{args.repeats} repetitions, {res.gap_frames.size} removed marker-frames"
     )
-    print(res.table())
+    print(f"error = distance to the removed position, in {m.units or 'file units'}")
+    print(res.table(m.units or "file units"))
     for meth, msg in res.failures.items():
         print(f"  {meth} failed: {msg}")
     out = Path(args.out)
