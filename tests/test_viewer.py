@@ -96,3 +96,24 @@ def test_view_renders_in_headless_chromium(result_file, tmp_path):
     (tmp_path / "control.html").write_text(text)
     ctrl = _screenshot(tmp_path / "control.html", tmp_path / "control.png")
     assert _near(ctrl[: int(0.8 * h), : int(0.55 * w)], (255, 120, 0), tol=35).sum() < bones / 10
+
+
+def test_floor_is_under_the_animal_in_any_world_frame():
+    from acm_rs.plots.viewer import _floor, _up
+
+    rng = np.random.default_rng(0)
+    animal = rng.normal(0, 5, (50, 3)) + [0, 0, 8]
+    ring = [[60 * np.cos(a), 60 * np.sin(a), 45] for a in np.linspace(0, 6, 4)]
+    cams = np.array(ring)
+    assert np.array_equal(_up(animal, cams), [0, 0, 1])  # a floor-based world frame: z
+    floor = _floor(animal, np.array([0.0, 0, 1]), pad=2.0)
+    np.testing.assert_allclose(floor[:, 2], animal[:, 2].min())
+    # the same scene seen in a tilted frame (e.g. the first camera's): up is the tilted z
+    c, s = np.cos(0.9), np.sin(0.9)
+    rot = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    up = _up(animal @ rot.T, cams @ rot.T)
+    assert up @ (rot @ [0, 0, 1]) > 0.9  # close to the true up (not a world axis)
+    floor = _floor(animal @ rot.T, up, pad=2.0)
+    heights = floor @ up
+    np.testing.assert_allclose(heights, heights[0])  # a plane perpendicular to up ...
+    assert np.all((animal @ rot.T) @ up >= heights[0] - 1e-9)  # ... under every joint

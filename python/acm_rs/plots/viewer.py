@@ -56,13 +56,46 @@ def _camera_lines(rig, size: float) -> tuple[list, list, list]:
     return xs, ys, zs
 
 
-def _eye(centers: np.ndarray, animal: np.ndarray, distance: float = 1.6) -> dict:
-    """A plotly scene eye looking from between two cameras (not through one), from above."""
-    cam_az = np.arctan2(centers[:, 1] - animal[1], centers[:, 0] - animal[0])
+def _up(points: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """ "Up": the world axis closest (within 30°) to the direction from the animal to the
+    cameras (calibrations with the floor as xy plane: +z); in other world frames (e.g. the
+    first camera's) that direction itself."""
+    up = centers.mean(axis=0) - points.mean(axis=0)
+    up = up / (np.linalg.norm(up) or 1.0)
+    for axis in np.vstack([np.eye(3), -np.eye(3)]):
+        if up @ axis > np.cos(np.deg2rad(30)):
+            return axis
+    return up
+
+
+def _plane_axes(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    u = np.cross(up, [1.0, 0, 0] if abs(up[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    return u, np.cross(up, u)
+
+
+def _floor(points: np.ndarray, up: np.ndarray, pad: float) -> np.ndarray:
+    """(4, 3) corners of the arena floor under the animal: the plane through its lowest point
+    perpendicular to ``up``, ``pad`` beyond its path."""
+    u, v = _plane_axes(up)
+    a, b, h = points @ u, points @ v, float((points @ up).min())
+    a0, a1, b0, b1 = a.min() - pad, a.max() + pad, b.min() - pad, b.max() + pad
+    return np.array([h * up + x * u + y * v for x, y in ((a0, b0), (a1, b0), (a1, b1), (a0, b1))])
+
+
+def _eye(centers: np.ndarray, animal: np.ndarray, up: np.ndarray, distance: float = 1.6) -> dict:
+    """A plotly scene camera looking from between two cameras (not through one), from above."""
+    u, v = _plane_axes(up)
+    rel = centers - animal
+    cam_az = np.arctan2(rel @ v, rel @ u)
     cands = np.deg2rad(np.arange(0, 360, 5))
     gap = np.abs((cands[:, None] - cam_az[None, :] + np.pi) % (2 * np.pi) - np.pi).min(axis=1)
     az = float(cands[int(np.argmax(gap))])
-    return {"x": distance * np.cos(az), "y": distance * np.sin(az), "z": 0.6 * distance}
+    eye = distance * (np.cos(az) * u + np.sin(az) * v + 0.6 * up)
+    return {
+        "eye": dict(zip("xyz", map(float, eye), strict=True)),
+        "up": dict(zip("xyz", map(float, up), strict=True)),
+    }
 
 
 def view_html(
@@ -128,19 +161,17 @@ def view_html(
     finite = joints[np.isfinite(joints).all(axis=-1)]
     lo, hi = finite.min(axis=0), finite.max(axis=0)
     span = float(np.max(hi - lo)) or 1.0
-    floor_z = float(lo[2])
-    pad = 0.25 * span
-    fx = [lo[0] - pad, hi[0] + pad]
-    fy = [lo[1] - pad, hi[1] + pad]
+    centers = np.array([c.center for c in result.rig])
+    up = _up(finite, centers)
+    floor = _floor(finite, up, pad=0.25 * span)
     fig.add_trace(
         go.Mesh3d(
-            x=[fx[0], fx[1], fx[1], fx[0]], y=[fy[0], fy[0], fy[1], fy[1]], z=[floor_z] * 4,
-            i=[0, 0], j=[1, 2], k=[2, 3], color="rgb(200,200,200)", opacity=0.5,
-            name="floor", hoverinfo="name", showscale=False,
+            x=floor[:, 0], y=floor[:, 1], z=floor[:, 2], i=[0, 0], j=[1, 2], k=[2, 3],
+            color="rgb(200,200,200)", opacity=0.5, name="floor", hoverinfo="name",
+            showscale=False,
         ),
         row=1, col=1,
     )  # fmt: skip
-    centers = np.array([c.center for c in result.rig])
     cx, cy, cz = _camera_lines(result.rig, 0.08 * max(span, float(np.ptp(centers, axis=0).max())))
     fig.add_trace(
         go.Scatter3d(x=cx, y=cy, z=cz, mode="lines", line={"color": "rgb(90,90,90)", "width": 2},
@@ -258,8 +289,8 @@ def view_html(
     }  # fmt: skip
     menu = {"buttons": buttons, "x": 0.62, "y": 1.08, "xanchor": "left", "active": 0}
     # the view holds the animal's whole path and the cameras
-    box_lo = np.minimum(np.array([fx[0], fy[0], floor_z]), centers.min(axis=0))
-    box_hi = np.maximum(np.array([fx[1], fy[1], float(hi[2])]), centers.max(axis=0))
+    everything = np.vstack([floor, centers, finite])
+    box_lo, box_hi = everything.min(axis=0), everything.max(axis=0)
     margin = 0.05 * float(np.max(box_hi - box_lo))
     box_lo, box_hi = box_lo - margin, box_hi + margin
     fig.update_layout(
@@ -270,7 +301,7 @@ def view_html(
             "xaxis": {"title": f"x ({units})", "range": [box_lo[0], box_hi[0]]},
             "yaxis": {"title": f"y ({units})", "range": [box_lo[1], box_hi[1]]},
             "zaxis": {"title": f"z ({units})", "range": [box_lo[2], box_hi[2]]},
-            "camera": {"eye": _eye(centers, finite.mean(axis=0))},
+            "camera": _eye(centers, finite.mean(axis=0), up),
         },
         legend={"x": 1.0, "y": 1.0},
         margin={"l": 90, "r": 10, "t": 90, "b": 60},
