@@ -131,7 +131,11 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("--calibration", help="anipose calibration.toml")
     lp.add_argument("--camera-names", nargs="+", help="cameras to use, in label-file order")
     lp.add_argument("--model", default="rat", help="bundled model name or skeleton TOML")
-    lp.add_argument("--labels", nargs="+", help="DeepLabCut CollectedData .csv/.h5, per camera")
+    lp.add_argument(
+        "--labels", nargs="+",
+        help="manual labels, one file per camera: DeepLabCut CollectedData .csv/.h5 (or SLEAP "
+        ".slp)",
+    )  # fmt: skip
     lp.add_argument("--individual", help="individual to use in multi-animal label files")
     lp.add_argument("--body-weight", type=float, help="body weight (g) for bone-length priors")
     lp.add_argument(

@@ -133,8 +133,14 @@ def add_subcommands(sub) -> None:
     p.add_argument(
         "--skeleton", default="rat", help="learned skeleton TOML (acm-rs learn) or a model name"
     )
-    p.add_argument("--dlc", nargs="+", help="DeepLabCut .h5/.csv, one per camera")
-    p.add_argument("--individual", help="individual in multi-animal DeepLabCut files")
+    p.add_argument(
+        "--dlc", nargs="+",
+        help="2D poses, one file per camera: DeepLabCut or Lightning Pose .h5/.csv, SLEAP "
+        ".slp/.analysis.h5",
+    )  # fmt: skip
+    p.add_argument(
+        "--individual", help="individual (DeepLabCut) or track (SLEAP) in multi-animal files"
+    )
     p.add_argument("--frames", dest="frame_range", help="frame range START:END (row indices)")
     p.add_argument("--pcutoff", type=float, default=0.9, help="likelihood cutoff (0.9)")
     p.add_argument("--max-iter", type=int, default=100, help="EM iterations at most (100)")
