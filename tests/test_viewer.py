@@ -85,7 +85,8 @@ def test_view_renders_in_headless_chromium(result_file, tmp_path):
     joints = (
         _near(scene[:, 120:], (122, 209, 81), 60) | _near(scene[:, 120:], (253, 231, 37), 60)
     ).sum()
-    assert bones > 100, f"skeleton not drawn ({bones} orange pixels in the 3D panel)"
+    # (measured: ~155 orange pixels with the bones, 0 without them)
+    assert bones > 40, f"skeleton not drawn ({bones} orange pixels in the 3D panel)"
     assert floor > 5000, f"arena floor not drawn ({floor} grey pixels)"
     assert joints > 30, f"joints not drawn ({joints} viridis pixels)"
     # the trace panel: the x (blue) mean line
