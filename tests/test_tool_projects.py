@@ -305,8 +305,12 @@ def test_multi_animal_project_needs_the_individual(tmp_path, capsys):
     assert "several individuals" in status[root.name] and "project.individual" in status[root.name]
     text = text.replace("# individual = ...", 'individual = "rat2"')
     (root / "config.toml").write_text(text)
+    capsys.readouterr()
     status = acm_rs.pipeline.run_all(root, steps=("track",), overwrite=True)
     assert status == {root.name: "ok"}
+    assert capsys.readouterr().out == ""  # the Python API is quiet; the log has the stages
+    log = max((root / "logs").glob("acm-rs-*.log")).read_text()
+    assert f"track {root.name}: tracked 8 frames" in log
     res = acm_rs.PoseResult.load(root / "acm-rs" / "pose.npz")
     assert np.median(np.linalg.norm(res.joints - sk.forward(t, r)[0], axis=-1)) < 1.0
 

@@ -22,6 +22,7 @@ plot           ``pose.npz``                                         ``<output>/p
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import logging
 import time
 from collections.abc import Iterator
@@ -67,8 +68,13 @@ def project_log(config: ProjectConfig) -> Iterator[Path]:
         handler.close()
 
 
+#: Whether stage lines also go to stdout (the command line); the log file always gets them.
+_ECHO: contextvars.ContextVar[bool] = contextvars.ContextVar("acm_rs_pipeline_echo", default=False)
+
+
 def _say(msg: str) -> None:
-    print(msg, flush=True)
+    if _ECHO.get():
+        print(msg, flush=True)
     log.info(msg)
 
 
@@ -349,10 +355,25 @@ def step_plot(
 
 
 def run_all(
-    project: str | Path, overwrite: bool = False, steps: tuple[str, ...] = STEPS
+    project: str | Path,
+    overwrite: bool = False,
+    steps: tuple[str, ...] = STEPS,
+    verbose: bool = False,
 ) -> dict[str, str]:
     """Run ``steps`` on every session of a project; a failing session does not stop the
-    others. Returns ``{session name: "ok" | error message}``."""
+    others. Returns ``{session name: "ok" | error message}``.
+
+    One line per stage goes to the project's log file; with ``verbose`` (the command line)
+    also to stdout. Progress bars appear only on a terminal.
+    """
+    token = _ECHO.set(bool(verbose))
+    try:
+        return _run_all(project, overwrite, steps)
+    finally:
+        _ECHO.reset(token)
+
+
+def _run_all(project: str | Path, overwrite: bool, steps: tuple[str, ...]) -> dict[str, str]:
     bad = [s for s in steps if s not in STEPS]
     if bad:
         raise ValueError(f"unknown step(s) {bad}; steps are {list(STEPS)}")
@@ -380,7 +401,8 @@ def run_all(
             except (ValueError, OSError, ArithmeticError) as exc:
                 status[session.name] = f"{type(exc).__name__}: {exc}"
                 log.exception("session %s failed", session.name)
-                print(f"session {session.name} FAILED: {exc}", flush=True)
+                if _ECHO.get():
+                    print(f"session {session.name} FAILED: {exc}", flush=True)
         _say(f"acm-rs: {sum(v == 'ok' for v in status.values())}/{len(status)} sessions ok")
     return status
 
@@ -401,9 +423,11 @@ def run_session(session_dir: str | Path, out_dir: str | Path) -> dict:
     return {"pose": str(pose), "exports": [str(f) for f in files], "plots": len(plots)}
 
 
-def run_step(project: str | Path, step: str, overwrite: bool = False) -> dict[str, str]:
+def run_step(
+    project: str | Path, step: str, overwrite: bool = False, verbose: bool = False
+) -> dict[str, str]:
     """One step of the workflow on a project (``acm-rs <step> --project DIR``)."""
-    return run_all(project, overwrite=overwrite, steps=(step,))
+    return run_all(project, overwrite=overwrite, steps=(step,), verbose=verbose)
 
 
 def add_project_option(parser, step: str) -> None:
@@ -422,7 +446,7 @@ def project_step_or(args, step: str, func, required: tuple[str, ...]) -> int:
     """Dispatch for commands that also work on a project folder: with ``--project`` run the
     step there, else check the command's own required options and run ``func(args)``."""
     if getattr(args, "project", None):
-        status = run_step(args.project, step, overwrite=args.overwrite_step)
+        status = run_step(args.project, step, overwrite=args.overwrite_step, verbose=True)
         return 0 if all(v == "ok" for v in status.values()) else 1
     missing = [r for r in required if not getattr(args, r.lstrip("-").replace("-", "_"), None)]
     if missing:
@@ -434,7 +458,7 @@ def project_step_or(args, step: str, func, required: tuple[str, ...]) -> int:
 
 def _cmd_run_all(args) -> int:
     steps = tuple(args.steps.split(",")) if args.steps else STEPS
-    status = run_all(args.project, overwrite=args.overwrite, steps=steps)
+    status = run_all(args.project, overwrite=args.overwrite, steps=steps, verbose=True)
     return 0 if all(v == "ok" for v in status.values()) else 1
 
 
@@ -445,9 +469,13 @@ def _cmd_plot(args) -> int:
     src = Path(args.input)
     if src.is_dir():
         config = load_config(src / "config.toml")
-        with project_log(config):
-            for session in find_sessions(config):
-                step_plot(config, session, overwrite=args.overwrite)
+        token = _ECHO.set(True)
+        try:
+            with project_log(config):
+                for session in find_sessions(config):
+                    step_plot(config, session, overwrite=args.overwrite)
+        finally:
+            _ECHO.reset(token)
         return 0
     res = PoseResult.load(src)
     out = Path(args.output) if args.output else src.with_name(src.stem + "_plots")
