@@ -118,3 +118,33 @@ def test_floor_is_under_the_animal_in_any_world_frame():
     heights = floor @ up
     np.testing.assert_allclose(heights, heights[0])  # a plane perpendicular to up ...
     assert np.all((animal @ rot.T) @ up >= heights[0] - 1e-9)  # ... under every joint
+
+
+def test_figure_content_and_decimation(result_file):
+    from acm_rs.plots.viewer import view_figure
+
+    res, _ = result_file
+    fig = view_figure(res, fps=50.0, max_frames=7, max_trace_points=10)
+    assert [f.name for f in fig.frames] == ["0", "5", "10", "15", "20", "25"]  # every 5th
+    # frame 10: the joints and the bones of frame 10, the joints coloured by their total SD
+    f10 = fig.frames[2]
+    joints = f10.data[1]
+    np.testing.assert_allclose(joints.x, res.joints[10, :, 0])
+    np.testing.assert_allclose(joints.marker.color, np.linalg.norm(res.joints_std[10], axis=-1))
+    a, b = res.skeleton.bones[0]
+    assert f10.data[0].x[:2] == pytest.approx(
+        [res.joints[10, a, 0], res.joints[10, b, 0]], abs=0.01
+    )
+    assert f10.data[2].x == (0.2, 0.2)  # the time cursor at 10 / 50 Hz
+    # the trace panel: joint 0's x mean every 3rd frame (30 frames, at most 10 points)
+    mean_x = fig.data[6]
+    np.testing.assert_allclose(mean_x.x, np.arange(0, 30, 3) / 50.0)
+    np.testing.assert_allclose(mean_x.y, res.joints[::3, 0, 0])
+    band = fig.data[5]  # mean ± 2 SD, as one closed polygon
+    np.testing.assert_allclose(band.y[:10], res.joints[::3, 0, 0] + 2 * res.joints_std[::3, 0, 0])
+    # the drop-down shows joint j's six traces and hides the others'
+    menu = fig.layout.updatemenus[1]
+    vis = menu.buttons[2].args[0]["visible"]
+    assert vis[5 + 12 : 5 + 18] == [True] * 6 and not any(vis[5:17]) and vis[-1]
+    with pytest.raises(ValueError, match="max_frames"):
+        view_figure(res, max_frames=0)

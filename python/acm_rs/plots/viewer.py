@@ -18,7 +18,7 @@ from .._io import atomic_write
 if TYPE_CHECKING:  # pragma: no cover
     from ..tracking.result import PoseResult
 
-__all__ = ["BONE_COLOR", "view_html"]
+__all__ = ["BONE_COLOR", "view_figure", "view_html"]
 
 #: Colour of the bones (an orange no other element uses, so tests can find the skeleton).
 BONE_COLOR = "rgb(255,120,0)"
@@ -26,12 +26,14 @@ _SD_SCALE = "Viridis"
 _AXIS_COLORS = ("rgb(31,119,180)", "rgb(44,160,44)", "rgb(214,39,40)")
 
 
-def _bone_xyz(joints: np.ndarray, bones: np.ndarray) -> list[list[float | None]]:
-    """Line coordinates of all bones of one frame, separated by None (one trace)."""
+def _bone_xyz(joints: np.ndarray, bones: np.ndarray, decimals: int) -> list[list[float | None]]:
+    """Line coordinates of all bones of one frame, separated by None (one trace), rounded to
+    ``decimals`` (the file holds one such list per animation frame)."""
     out: list[list[float | None]] = [[], [], []]
     for a, b in bones:
         for k in range(3):
-            out[k] += [float(joints[a, k]), float(joints[b, k]), None]
+            out[k] += [round(float(joints[a, k]), decimals), round(float(joints[b, k]), decimals),
+                       None]  # fmt: skip
     return out
 
 
@@ -104,28 +106,59 @@ def view_html(
     *,
     fps: float | None = None,
     max_frames: int = 1500,
+    max_trace_points: int = 5000,
     title: str | None = None,
 ) -> Path:
     """Write one HTML file that shows the tracked skeleton in 3D in a browser.
+
+    The figure of :func:`view_figure` with plotly.js embedded (no network needed); parameters
+    as there.
+
+    Returns
+    -------
+    Path
+        ``path`` (written atomically; about 5 MB of plotly.js plus ~3 KB per animation frame).
+    """
+    fig = view_figure(
+        result, fps=fps, max_frames=max_frames, max_trace_points=max_trace_points, title=title
+    )
+    html = fig.to_html(include_plotlyjs=True, full_html=True, auto_play=False)
+    target = Path(path)
+    with atomic_write(target, "w") as fh:
+        fh.write(html)
+    return target
+
+
+def view_figure(
+    result: PoseResult,
+    *,
+    fps: float | None = None,
+    max_frames: int = 1500,
+    max_trace_points: int = 5000,
+    title: str | None = None,
+):
+    """The plotly figure of the viewer (layout in the module docs).
 
     Parameters
     ----------
     result : PoseResult
         Uses ``joints`` (T, J, 3) and ``joints_std`` (T, J, 3) in ``skeleton.units``, the bones
         and the rig (camera centres and orientations, same units).
-    path : path
-        The ``.html`` file (written atomically). About 5 MB of plotly.js is embedded, so it opens
-        without network access.
     fps : float, optional
         Frame rate (Hz) for a time axis in seconds (frames otherwise).
     max_frames : int
-        At most this many animation frames (every k-th frame of longer recordings; the trace
-        panel always shows every frame).
+        At most this many animation frames (every k-th frame of longer recordings).
+    max_trace_points : int
+        At most this many samples per line of the trace panel (every k-th frame of longer
+        recordings), which bounds the file size of long recordings.
     title : str, optional
 
     Returns
     -------
-    Path
+    plotly.graph_objects.Figure
+        Traces 0-2 floor and cameras, 3 bones, 4 joints (animated), then per joint 3 × (band,
+        mean) of the trace panel, last the time cursor (animated); ``frames`` one per animated
+        frame.
     """
     try:
         import plotly.graph_objects as go
@@ -189,11 +222,10 @@ def view_html(
     )  # fmt: skip
 
     # -- animated traces: bones, joints (indices 3, 4) and the time cursor (last trace)
-    def hover(t: int) -> list[str]:
-        return [f"{n}: SD {v:.3g} {units}" for n, v in zip(sk.joint_names, sd[t], strict=True)]
-
+    # bone coordinates to 1e-4 of the animal's extent (0.1 mm for a rat in cm)
+    decimals = max(0, 3 - int(np.floor(np.log10(span))))
     t0 = int(shown[0])
-    bx, by, bz = _bone_xyz(joints[t0], bones)
+    bx, by, bz = _bone_xyz(joints[t0], bones, decimals)
     fig.add_trace(
         go.Scatter3d(x=bx, y=by, z=bz, mode="lines", line={"color": BONE_COLOR, "width": 10},
                      name="bones", hoverinfo="skip"),
@@ -207,20 +239,23 @@ def view_html(
                 "cmax": sd_max,
                 "colorbar": {"title": f"SD ({units})", "x": -0.01, "xanchor": "right", "len": 0.6},
             },
-            text=hover(t0), hoverinfo="text", name="joints",
+            text=list(sk.joint_names), name="joints",
+            hovertemplate=f"%{{text}}: SD %{{marker.color:.3g}} {units}<extra></extra>",
         ),
         row=1, col=1,
     )  # fmt: skip
 
     # -- trace panel: per joint x, y, z mean and ±2 SD band; a drop-down picks the joint
     n_static = 5
+    keep = slice(None, None, max(1, int(np.ceil(n_t / max(1, max_trace_points)))))
+    tt = time[keep]
     for j in range(n_j):
         for a in range(3):
-            m, s = joints[:, j, a], std[:, j, a]
+            m, s = joints[keep, j, a], std[keep, j, a]
             visible = j == 0
             fig.add_trace(
                 go.Scatter(
-                    x=np.concatenate([time, time[::-1]]),
+                    x=np.concatenate([tt, tt[::-1]]),
                     y=np.concatenate([m + 2 * s, (m - 2 * s)[::-1]]),
                     fill="toself", fillcolor=_AXIS_COLORS[a].replace("rgb", "rgba")[:-1] + ",0.25)",
                     line={"width": 0}, hoverinfo="skip", showlegend=False, visible=visible,
@@ -228,7 +263,7 @@ def view_html(
                 row=1, col=2,
             )  # fmt: skip
             fig.add_trace(
-                go.Scatter(x=time, y=m, mode="lines", line={"color": _AXIS_COLORS[a], "width": 1.5},
+                go.Scatter(x=tt, y=m, mode="lines", line={"color": _AXIS_COLORS[a], "width": 1.5},
                            name=f"{'xyz'[a]}", visible=visible, legendgroup="xyz"[a],
                            showlegend=True),
                 row=1, col=2,
@@ -254,10 +289,10 @@ def view_html(
     frames = []
     for t in shown:
         t = int(t)
-        bx, by, bz = _bone_xyz(joints[t], bones)
+        bx, by, bz = _bone_xyz(joints[t], bones, decimals)
         joints_t = go.Scatter3d(
             x=joints[t, :, 0], y=joints[t, :, 1], z=joints[t, :, 2],
-            marker={"color": sd[t]}, text=hover(t),
+            marker={"color": sd[t]},
         )  # fmt: skip
         cursor_t = go.Scatter(x=[time[t], time[t]], y=[lo_y, hi_y])
         bones_t = go.Scatter3d(x=bx, y=by, z=bz)
@@ -308,8 +343,4 @@ def view_html(
     )  # fmt: skip
     fig.update_xaxes(title_text=tlabel, row=1, col=2)
     fig.update_yaxes(title_text=f"{sk.joint_names[0]} ({units})", row=1, col=2)
-    html = fig.to_html(include_plotlyjs=True, full_html=True, auto_play=False)
-    target = Path(path)
-    with atomic_write(target, "w") as fh:
-        fh.write(html)
-    return target
+    return fig
