@@ -373,3 +373,15 @@ def test_lightning_pose_csv(tmp_path):
     assert names == bps and list(frames) == list(range(40, 45))
     np.testing.assert_allclose(pts, data[..., :2])
     np.testing.assert_allclose(lk, data[..., 2])
+
+
+def test_batch_session_function_runs_in_a_dlc_project(dlc_project, tmp_path):
+    root, _, _, truth = dlc_project
+    if not (root / "config.toml").exists():
+        assert main(["init", str(root)]) == 0
+    text = (root / "config.toml").read_text()
+    (root / "config.toml").write_text(text.replace("max_iter = 100", "max_iter = 3"))
+    out = acm_rs.pipeline.run_session(root, tmp_path / "out")  # what acm-rs batch runs
+    res = acm_rs.PoseResult.load(out["pose"])
+    assert res.n_frames == 25
+    assert np.median(np.linalg.norm(res.joints - truth, axis=-1)) < 1.0

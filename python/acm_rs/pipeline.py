@@ -409,9 +409,11 @@ def _run_all(project: str | Path, overwrite: bool, steps: tuple[str, ...]) -> di
 
 def run_session(session_dir: str | Path, out_dir: str | Path) -> dict:
     """Track, export and plot one session (the default per-session function of
-    :func:`acm_rs.batch.run`); the project's ``config.toml`` is in the session's parent."""
+    :func:`acm_rs.batch.run`); the project's ``config.toml`` is in the session's parent (or in
+    the session folder itself: a DeepLabCut project)."""
     session_dir = Path(session_dir)
-    config = load_config(session_dir.parent / "config.toml")
+    own = session_dir / "config.toml"
+    config = load_config(own if own.is_file() else session_dir.parent / "config.toml")
     matches = [s for s in find_sessions(config) if s.path.resolve() == session_dir.resolve()]
     if not matches:
         raise ValueError(f"{session_dir} is not a session of the project {config.root}")
