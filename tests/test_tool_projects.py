@@ -149,6 +149,7 @@ def dlc_project(tmp_path_factory):
 
 def test_dlc_project_files_are_found_and_chosen(dlc_project, capsys):
     root, det, _, _ = dlc_project
+    (root / "config.toml").unlink(missing_ok=True)  # (another test may have run init)
     assert main(["init", str(root)]) == 0
     out = capsys.readouterr().out
     assert "for a DeepLabCut project" in out
