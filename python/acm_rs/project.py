@@ -41,6 +41,7 @@ __all__ = [
     "load_config",
     "match_cameras",
     "read_dlc_config",
+    "rig_for_files",
     "video_fps",
 ]
 
@@ -684,6 +685,39 @@ def camera_table(
     widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
     return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
                      for r in [head] + rows)  # fmt: skip
+
+
+def rig_for_files(calibration: str | Path, files: list[str | Path], names: list[str] | None = None):
+    """The calibrated rig in the order of per-camera files given on the command line.
+
+    With ``names`` (``--camera-names``) those cameras in that order. Otherwise, when every
+    file name holds a camera name (default ``cameras.regex``) matching one calibrated camera
+    (:func:`match_cameras`), the rig is put in the files' order; else the calibration's order
+    (the files must then be given in it).
+
+    Returns
+    -------
+    rig : CameraRig
+    table : str or None
+        :func:`camera_table` of the match made from the file names (None if not).
+    """
+    from .camera import CameraRig
+
+    if names:
+        return CameraRig.load(calibration, names=names), None
+    rig = CameraRig.load(calibration)
+    regex = re.compile(SCHEMA["cameras"]["regex"].default)
+    paths = [Path(f) for f in files]
+    found = [_camera_of(p, regex) for p in paths]
+    if len(paths) != len(rig) or None in found or len(set(found)) != len(found):
+        return rig, None
+    try:
+        mapping = match_cameras(found, [c.name for c in rig])
+    except ValueError:
+        return rig, None
+    ordered = CameraRig.load(calibration, names=[mapping[c][0] for c in found])
+    table = camera_table(mapping, {"file": dict(zip(found, paths, strict=True))})
+    return ordered, table
 
 
 def video_fps(path: str | Path) -> float | None:

@@ -17,13 +17,16 @@ def _frame_slice(spec: str | None, n: int) -> slice:
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
-    from ..camera import CameraRig
     from ..dlc import read_labels
     from ..models import load_name_or_file
+    from ..project import rig_for_files
     from .bundle import write_bundle
     from .track import track
 
-    rig = CameraRig.load(args.calibration, names=args.camera_names)
+    rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names)
+    if table:
+        print("acm-rs track: cameras matched by the names in the files:\n  "
+              + table.replace("\n", "\n  "))  # fmt: skip
     if len(args.dlc) != len(rig):
         raise ValueError(
             f"{len(args.dlc)} DeepLabCut files for {len(rig)} cameras (give one per camera in "
@@ -129,7 +132,11 @@ def add_subcommands(sub) -> None:
         "smoothed posterior (OUT.npz, OUT_joints.csv; exports on request).",
     )
     p.add_argument("--calibration", help="anipose calibration.toml")
-    p.add_argument("--camera-names", nargs="+", help="camera names in the order of --dlc")
+    p.add_argument(
+        "--camera-names", nargs="+",
+        help="calibrated camera names in the order of --dlc (default: from the file names "
+        "when each names one camera, e.g. rat-cam0DLC_...h5; else the calibration's order)",
+    )  # fmt: skip
     p.add_argument(
         "--skeleton", default="rat", help="learned skeleton TOML (acm-rs learn) or a model name"
     )
