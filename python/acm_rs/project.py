@@ -35,14 +35,17 @@ __all__ = [
     "ProjectConfig",
     "Session",
     "camera_table",
+    "dlc_bodyparts",
     "find_manual_labels",
     "find_sessions",
     "init_project",
     "load_config",
     "match_cameras",
+    "pick_label_file",
     "read_dlc_config",
     "rig_for_files",
     "video_fps",
+    "videos_fps",
 ]
 
 CONFIG_NAME = "config.toml"
