@@ -349,6 +349,40 @@ def test_cli_gapfill(seq, tmp_path):
     assert main(["gapfill", str(src), "-o", str(out)]) == 1  # exists, no --overwrite
 
 
+def test_cli_gapfill_sds_are_opt_in(seq, tmp_path, monkeypatch, capsys):
+    import acm_rs.gapfill as gf
+    from acm_rs.cli import main
+
+    calls = []
+    real = gf.fill
+
+    def spy(X, **kw):
+        calls.append(kw.get("full_output", False))
+        return real(X, **kw)
+
+    monkeypatch.setattr(gf, "fill", spy)
+    G = gapped(seq)
+    src = tmp_path / "in.trc"
+    write(src, G, [f"m{i}" for i in range(G.shape[1])], 100.0)
+    assert main(["gapfill", str(src), "-o", str(tmp_path / "a.trc")]) == 0
+    assert calls == [False]  # no posterior SDs unless asked for
+    err = capsys.readouterr().err
+    assert "read" in err and "filling" in err and "filled" in err  # one line per stage
+    assert (
+        main(["gapfill", str(src), "-o", str(tmp_path / "b.trc"), "--std", str(tmp_path / "s.trc")])
+        == 0
+    )
+    assert calls == [False, True]
+    assert "posterior standard deviations (mm)" in capsys.readouterr().out
+    std = read(tmp_path / "s.trc").xyz
+    gaps = np.isnan(G).any(axis=2)
+    assert np.all(std[gaps] > 0) and np.all(std[~gaps] == 0)
+    # the same fill either way (to rounding: the smoother with SDs sums in another order)
+    np.testing.assert_allclose(
+        read(tmp_path / "a.trc").xyz, read(tmp_path / "b.trc").xyz, rtol=1e-6, atol=1e-6
+    )
+
+
 @pytest.mark.skipif(not MOCAP.is_dir(), reason="../shared data not available")
 def test_real_c3d_copy_preserves_metadata(tmp_path):
     src = MOCAP / "85_02.c3d"

@@ -47,7 +47,7 @@ def _edit(path, old, new):
         ("legacy_pattern = false", "legacy_pattern = 0", r"legacy_pattern must be true/false"),
         ("max_iter = 100", "max_iter = true", r"em.max_iter must be an integer, got bool"),
         ("board_size = [10, 7]", "board_size = [10]", r"board_size = \[10\] is invalid: expected"),
-        ('regex = "cam', 'regex = "(cam', r"cameras.regex = .* is invalid"),
+        ('regex = "', 'regex = "(', r"cameras.regex = .* is invalid"),
         ("pcutoff = 0.9", "pcutoff = 0.9\npcutoff = 0.8", r"invalid TOML"),
     ],
 )
@@ -99,9 +99,9 @@ def test_find_sessions(project):
     sessions = pj.find_sessions(cfg)
     assert [s.name for s in sessions] == ["s01", "s02"]
     s1, s2 = sessions
-    assert s1.cameras == ["A", "B"]
-    assert s1.videos["B"].name == "rat-camB.mp4"
-    assert s1.labels["A"].name == "rat-camADLC_resnet50_x.h5"  # .h5 preferred over .csv
+    assert s1.cameras == ["camA", "camB"]  # the default regex keeps the whole name
+    assert s1.videos["camB"].name == "rat-camB.mp4"
+    assert s1.labels["camA"].name == "rat-camADLC_resnet50_x.h5"  # .h5 preferred over .csv
     assert s1.calibration == cfg.root / "calibration" / "calibration.toml"
     assert s2.calibration == s2.path / "calibration" / "calibration.toml"
     assert s1.output == s1.path / "acm-rs"
@@ -109,15 +109,15 @@ def test_find_sessions(project):
 
 def test_camera_names_order_and_missing(project):
     path = project / "config.toml"
-    _edit(path, "names = []", 'names = ["B", "A"]')
-    assert pj.find_sessions(pj.load_config(path))[0].cameras == ["B", "A"]
-    _edit(path, 'names = ["B", "A"]', 'names = ["B", "A", "C"]')
+    _edit(path, "names = []", 'names = ["camB", "camA"]')
+    assert pj.find_sessions(pj.load_config(path))[0].cameras == ["camB", "camA"]
+    _edit(path, 'names = ["camB", "camA"]', 'names = ["camB", "camA", "camC"]')
     with pytest.raises(
-        ValueError, match=r"camera 'C' \(cameras.names\) matches no file.*\['A', 'B'\]"
+        ValueError, match=r"camera 'camC' \(cameras.names\) matches no file.*\['camA', 'camB'\]"
     ):
         pj.find_sessions(pj.load_config(path))
-    _edit(path, 'names = ["B", "A", "C"]', 'names = ["A"]')
-    with pytest.raises(ValueError, match=r"rat-camB.mp4 is camera 'B', which is not in"):
+    _edit(path, 'names = ["camB", "camA", "camC"]', 'names = ["camA"]')
+    with pytest.raises(ValueError, match=r"rat-camB.mp4 is camera 'camB', which is not in"):
         pj.find_sessions(pj.load_config(path))
 
 
@@ -127,10 +127,10 @@ def test_session_errors(project, tmp_path):
         pj.find_sessions(pj.load_config(project))
     (project / "s01" / "videos" / "overview.mp4").unlink()
     _touch(project / "s01" / "videos", "rat-camC.mp4")
-    with pytest.raises(ValueError, match=r"videos name cameras \['A', 'B', 'C'\] but labels"):
+    with pytest.raises(ValueError, match=r"videos name cameras \['camA', 'camB', 'camC'\] but"):
         pj.find_sessions(pj.load_config(project))
     _touch(project / "s01" / "videos", "rat2-camC.avi")
-    with pytest.raises(ValueError, match="two files for camera 'C'"):
+    with pytest.raises(ValueError, match="two files for camera 'camC'"):
         pj.find_sessions(pj.load_config(project))
     empty = tmp_path / "empty"
     pj.init_project(empty)
@@ -144,9 +144,13 @@ def test_init_subcommand(tmp_path, capsys):
     parser = argparse.ArgumentParser()
     pj.add_subcommands(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(["init", str(tmp_path / "p"), "--model", "mouse"])
+    with pytest.raises(ValueError, match="no video with a frame rate.*--fps HZ"):
+        args.func(args)  # nothing to read the frame rate from: it must be given
+    args = parser.parse_args(["init", str(tmp_path / "p"), "--model", "mouse", "--fps", "100"])
     assert args.func(args) == 0
     assert "wrote" in capsys.readouterr().out
-    assert pj.load_config(tmp_path / "p").project["model"] == "mouse"
-    args = parser.parse_args(["init", str(tmp_path / "p")])
+    cfg = pj.load_config(tmp_path / "p")
+    assert cfg.project["model"] == "mouse" and cfg.tracking["fps"] == 100.0
+    args = parser.parse_args(["init", str(tmp_path / "p"), "--fps", "100"])
     with pytest.raises(FileExistsError):
         args.func(args)

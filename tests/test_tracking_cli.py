@@ -79,3 +79,22 @@ def test_bundle_mode_writes_an_acm_smooth_input(project):
     assert code == 0
     b = np.load(d / "b" / "s.bundle.npz")
     assert b["detections"].shape[:2] == (4, 30) and np.isfinite(b["mu0"]).all()
+
+
+def test_track_matches_files_to_cameras_by_name(project, capsys):
+    d, sk, rig, t, r, dlc = project
+    out = d / "out" / "shuffled"
+    shuffled = [dlc[2], dlc[0], dlc[3], dlc[1]]  # not the calibration's order
+    code = main([
+        "track", "--calibration", str(d / "calibration.toml"), "--skeleton",
+        str(d / "skeleton.toml"), "--dlc", *shuffled, "--max-iter", "3", "--frames", "0:25",
+        "-o", str(out),
+    ])  # fmt: skip
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "cameras matched by the names in the files" in printed
+    assert "cam2    cam2         exact  cam2DLC_net.csv" in printed
+    res = acm_rs.PoseResult.load(out.with_suffix(".npz"))
+    assert res.rig.names == ["cam2", "cam0", "cam3", "cam1"]
+    truth, _ = sk.forward(t[:25], r[:25])
+    assert np.mean(np.linalg.norm(res.joints - truth, axis=-1)) < 0.3  # cm

@@ -195,7 +195,7 @@ def run(
     output: str = "acm-rs",
     n_workers: int = 2,
     threads_per_worker: int = 1,
-    progress: bool = True,
+    progress: bool | None = False,
 ) -> list[SessionStatus]:
     """Run ``func(session_dir, out_dir)`` for every session on a Dask cluster.
 
@@ -219,8 +219,8 @@ def run(
         Size of the local cluster (ignored with ``client``). Each worker's Rust thread pool is
         limited to ``threads_per_worker`` threads (``RAYON_NUM_THREADS``) to avoid
         oversubscription.
-    progress : bool
-        Show a progress bar (tqdm).
+    progress : bool or None
+        Show a progress bar (tqdm); None: only when stderr is a terminal; default quiet.
 
     Returns
     -------
@@ -265,10 +265,13 @@ def run(
             for i, p in enumerate(paths)
         }
         bar = None
-        if progress:
+        if progress is not False:
             from tqdm.auto import tqdm
 
-            bar = tqdm(total=len(futures), desc="sessions", unit="session")
+            bar = tqdm(
+                total=len(futures), desc="sessions", unit="session",
+                disable=None if progress is None else False,
+            )  # fmt: skip
         for fut in as_completed(futures):
             p = futures[fut]
             try:
@@ -335,6 +338,7 @@ def _cmd_batch(args) -> int:
         output=config.paths["output"],
         n_workers=args.workers,
         threads_per_worker=args.threads,
+        progress=None,
     )
     report = write_report(config.root / f"batch-{time.strftime('%Y%m%d-%H%M%S')}.json", statuses)
     print(summary(statuses))

@@ -62,13 +62,16 @@ def _cmd_learn(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from .camera import CameraRig
     from .dlc import read_labels
     from .learning import learn_skeleton
     from .models import load_name_or_file
     from .plotting import save_figure
+    from .project import rig_for_files
 
-    rig = CameraRig.load(args.calibration, names=args.camera_names)
+    rig, table = rig_for_files(args.calibration, args.labels, args.camera_names)
+    if table:
+        print("acm-rs learn: cameras matched by the names in the files:\n  "
+              + table.replace("\n", "\n  "))  # fmt: skip
     if len(args.labels) != len(rig):
         raise ValueError(
             f"{len(args.labels)} label files for {len(rig)} cameras (give one per camera, in "
@@ -85,7 +88,7 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         print(f"  predictions: {low} labels below pcutoff {args.pcutoff} are not used")
     res = learn_skeleton(
         rig, skeleton, labels.points, body_weight=args.body_weight,
-        symmetric=not args.no_symmetry, marker_names=labels.bodyparts, progress=True,
+        symmetric=not args.no_symmetry, marker_names=labels.bodyparts, progress=None,
         likelihood=labels.likelihood, pcutoff=args.pcutoff,
     )  # fmt: skip
     out = Path(args.output)
@@ -129,9 +132,17 @@ def build_parser() -> argparse.ArgumentParser:
         "learn", help="learn bone lengths and marker offsets from labelled frames (sec. 3.2)"
     )
     lp.add_argument("--calibration", help="anipose calibration.toml")
-    lp.add_argument("--camera-names", nargs="+", help="cameras to use, in label-file order")
+    lp.add_argument(
+        "--camera-names", nargs="+",
+        help="cameras to use, in label-file order (default: from the file names when each "
+        "names one camera; else the calibration's order)",
+    )  # fmt: skip
     lp.add_argument("--model", default="rat", help="bundled model name or skeleton TOML")
-    lp.add_argument("--labels", nargs="+", help="DeepLabCut CollectedData .csv/.h5, per camera")
+    lp.add_argument(
+        "--labels", nargs="+",
+        help="manual labels, one file per camera: DeepLabCut CollectedData .csv/.h5 (or SLEAP "
+        ".slp)",
+    )  # fmt: skip
     lp.add_argument("--individual", help="individual to use in multi-animal label files")
     lp.add_argument("--body-weight", type=float, help="body weight (g) for bone-length priors")
     lp.add_argument(

@@ -1,4 +1,6 @@
-"""DeepLabCut files: manual labels (``CollectedData_*.csv/.h5``) of several cameras.
+"""2D label files of several cameras: DeepLabCut (manual ``CollectedData_*.csv/.h5`` and
+predictions), Lightning Pose CSVs (DeepLabCut's CSV layout) and SLEAP (``.slp``, analysis
+``.h5``; see :mod:`acm_rs.sleap`).
 
 DeepLabCut stores a pandas DataFrame whose columns are a MultiIndex ``(scorer, bodyparts,
 coords)`` or ``(scorer, individuals, bodyparts, coords)`` with ``coords`` in ``x, y`` (plus
@@ -16,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LabelSet", "read_dlc_table", "read_labels"]
+from .sleap import is_sleap_analysis, read_sleap_analysis, read_slp
+
+__all__ = ["LabelSet", "concat_labels", "read_dlc_table", "read_labels"]
 
 _COORDS = {"x", "y", "likelihood"}
 
@@ -67,13 +71,15 @@ def _read_csv(path: Path):
 
 
 def read_dlc_table(path: str | Path, individual: str | None = None):
-    """Read one DeepLabCut ``.csv``/``.h5`` file.
+    """Read one 2D label file: DeepLabCut or Lightning Pose ``.csv``, DeepLabCut ``.h5``
+    (PyTables), SLEAP analysis ``.h5`` or SLEAP ``.slp`` (needs sleap-io).
 
     Parameters
     ----------
     path : path
     individual : str, optional
-        For multi-animal files, which individual to keep (required if there are several).
+        For multi-animal files, which individual (DeepLabCut) or track (SLEAP) to keep
+        (required if there are several).
 
     Returns
     -------
@@ -85,6 +91,10 @@ def read_dlc_table(path: str | Path, individual: str | None = None):
     p = Path(path)
     if not p.exists():
         raise ValueError(f"{p}: no such file")
+    if p.suffix.lower() == ".slp":
+        return read_slp(p, individual)
+    if p.suffix.lower() in (".h5", ".hdf5") and is_sleap_analysis(p):
+        return read_sleap_analysis(p, individual)
     if p.suffix.lower() in (".h5", ".hdf5"):
         import pandas as pd
 
@@ -101,38 +111,51 @@ def read_dlc_table(path: str | Path, individual: str | None = None):
     elif p.suffix.lower() == ".csv":
         df = _read_csv(p)
     else:
-        raise ValueError(f"{p}: expected a DeepLabCut .csv or .h5 file")
+        raise ValueError(f"{p}: expected a DeepLabCut/Lightning Pose .csv or .h5, or SLEAP .slp")
     cols = df.columns
     if cols.nlevels == 4:
         inds = list(dict.fromkeys(cols.get_level_values(1)))
-        if individual is None and len(inds) > 1:
-            raise ValueError(f"{p}: several individuals {inds}; choose one with individual=")
-        ind = individual if individual is not None else inds[0]
+        # DeepLabCut puts "unique body parts" (not part of any animal) under "single"
+        animals = [i for i in inds if i != "single"] or inds
+        if individual is None and len(animals) > 1:
+            raise ValueError(
+                f"{p}: several individuals {animals}; choose one with individual= "
+                "(project.individual in config.toml, --individual on the command line)"
+            )
+        ind = individual if individual is not None else animals[0]
         if ind not in inds:
             raise ValueError(f"{p}: no individual {ind!r}; individuals: {inds}")
         df = df.xs(ind, axis=1, level=1)
         cols = df.columns
     if cols.nlevels != 3:
         raise ValueError(f"{p}: unexpected column levels {cols.nlevels} (expected 3 or 4)")
-    bodyparts = list(dict.fromkeys(cols.get_level_values(1)))
+    # coordinate columns only: Lightning Pose adds a "set" column, EKS "x_ens_var" etc.
+    xs = [c for c in cols if c[2] == "x"]
+    if not xs:
+        raise ValueError(f"{p}: no x/y columns")
+    scorer = xs[0][0]
+    bodyparts = list(dict.fromkeys(c[1] for c in xs if c[0] == scorer))
     n = len(df)
     points = np.full((n, len(bodyparts), 2), np.nan)
-    has_lik = "likelihood" in set(cols.get_level_values(2))
+    has_lik = (scorer, bodyparts[0], "likelihood") in set(cols)
     lik = np.full((n, len(bodyparts)), np.nan) if has_lik else None
-    scorer = cols.get_level_values(0)[0]
-    for j, bp in enumerate(bodyparts):
-        for c, name in enumerate(("x", "y")):
-            points[:, j, c] = df[(scorer, bp, name)].to_numpy(dtype=float)
-        if lik is not None:
-            lik[:, j] = df[(scorer, bp, "likelihood")].to_numpy(dtype=float)
+    try:
+        for j, bp in enumerate(bodyparts):
+            for c, name in enumerate(("x", "y")):
+                points[:, j, c] = df[(scorer, bp, name)].to_numpy(dtype=float)
+            if lik is not None:
+                lik[:, j] = df[(scorer, bp, "likelihood")].to_numpy(dtype=float)
+    except KeyError as exc:
+        raise ValueError(f"{p}: column {exc} is missing (every body part needs x and y)") from None
     frames = np.array([_frame_number(lab, i) for i, lab in enumerate(df.index)], dtype=np.int64)
     if len(set(frames.tolist())) != len(frames):
         raise ValueError(f"{p}: two rows have the same frame number")
     return points, lik, frames, bodyparts
 
 
-def read_labels(paths: Sequence[str | Path], individual: str | None = None) -> LabelSet:
-    """Read the DeepLabCut label files of several cameras (one file per camera, rig order).
+def read_labels(paths: Sequence[str | Path | None], individual: str | None = None) -> LabelSet:
+    """Read the 2D label files of several cameras (one file per camera, rig order; None for
+    a camera without labels, which is then NaN).
 
     Rows are matched across cameras by frame number (from the image names); a frame missing in
     one camera is NaN there. Body parts are matched by name (union, in first-seen order).
@@ -141,19 +164,62 @@ def read_labels(paths: Sequence[str | Path], individual: str | None = None) -> L
     -------
     LabelSet
     """
-    if not paths:
+    if not paths or all(p is None for p in paths):
         raise ValueError("no label files given")
-    tables = [read_dlc_table(p, individual) for p in paths]
-    bodyparts = list(dict.fromkeys(bp for t in tables for bp in t[3]))
-    frames = np.array(sorted({int(f) for t in tables for f in t[2]}), dtype=np.int64)
+    tables = [read_dlc_table(p, individual) if p is not None else None for p in paths]
+    present = [t for t in tables if t is not None]
+    bodyparts = list(dict.fromkeys(bp for t in present for bp in t[3]))
+    frames = np.array(sorted({int(f) for t in present for f in t[2]}), dtype=np.int64)
     index = {f: i for i, f in enumerate(frames.tolist())}
     pts = np.full((len(tables), len(frames), len(bodyparts), 2), np.nan)
-    any_lik = any(t[1] is not None for t in tables)
+    any_lik = any(t[1] is not None for t in present)
     lik = np.full(pts.shape[:-1], np.nan) if any_lik else None
-    for c, (p, lk, fr, bps) in enumerate(tables):
+    for c, table in enumerate(tables):
+        if table is None:
+            continue
+        p, lk, fr, bps = table
         rows = np.array([index[int(f)] for f in fr], dtype=int)
         cols = np.array([bodyparts.index(b) for b in bps], dtype=int)
         pts[c, rows[:, None], cols[None, :]] = p
-        if lik is not None and lk is not None:
+        if lik is not None:
+            # manual labels (no likelihood) mixed with predictions: a label counts as certain
+            lk = lk if lk is not None else np.where(np.isfinite(p[..., 0]), 1.0, np.nan)
             lik[c, rows[:, None], cols[None, :]] = lk
     return LabelSet(pts, lik, frames, bodyparts)
+
+
+def concat_labels(sets: Sequence[LabelSet]) -> LabelSet:
+    """Label sets of several recordings (same cameras) one after the other.
+
+    Body parts are matched by name (union); ``frames`` keeps each recording's frame numbers,
+    so it may repeat. A recording without likelihoods (manual labels) gets likelihood 1 where
+    labelled when another has them.
+    """
+    if not sets:
+        raise ValueError("no label sets")
+    if len(sets) == 1:
+        return sets[0]
+    n_cams = {s.points.shape[0] for s in sets}
+    if len(n_cams) != 1:
+        raise ValueError(f"label sets of different camera counts {sorted(n_cams)}")
+    bodyparts = list(dict.fromkeys(bp for s in sets for bp in s.bodyparts))
+    any_lik = any(s.likelihood is not None for s in sets)
+    pts, liks = [], []
+    for s in sets:
+        cols = [bodyparts.index(b) for b in s.bodyparts]
+        p = np.full(s.points.shape[:2] + (len(bodyparts), 2), np.nan)
+        p[:, :, cols] = s.points
+        pts.append(p)
+        if any_lik:
+            lk = np.full(p.shape[:-1], np.nan)
+            src = s.likelihood
+            if src is None:
+                src = np.where(np.isfinite(s.points[..., 0]), 1.0, np.nan)
+            lk[:, :, cols] = src
+            liks.append(lk)
+    return LabelSet(
+        np.concatenate(pts, axis=1),
+        np.concatenate(liks, axis=1) if any_lik else None,
+        np.concatenate([s.frames for s in sets]),
+        bodyparts,
+    )

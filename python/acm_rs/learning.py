@@ -224,14 +224,18 @@ def _clip_to_bounds(
 class _Progress:
     """Iteration counter for L-BFGS-B with an optional tqdm bar."""
 
-    def __init__(self, enabled: bool, desc: str, total: int) -> None:
+    def __init__(self, enabled: bool | None, desc: str, total: int) -> None:
         self.values: list[float] = []
         self.bar = None
-        if enabled:
+        if enabled is not False:
             try:
                 from tqdm.auto import tqdm
 
-                self.bar = tqdm(total=total, desc=desc, unit="it", leave=False)
+                # disable=None: a bar only when stderr is a terminal
+                self.bar = tqdm(
+                    total=total, desc=desc, unit="it", leave=False,
+                    disable=None if enabled is None else False,
+                )  # fmt: skip
             except ImportError:  # pragma: no cover - tqdm is a dependency
                 self.bar = None
 
@@ -252,7 +256,7 @@ def _minimize(
     bounds: list,
     scale: float,
     options: dict,
-    progress: bool,
+    progress: bool | None,
     desc: str,
 ):
     """L-BFGS-B on ``scale * f`` with Jacobi preconditioning.
@@ -520,7 +524,7 @@ def learn_skeleton(
     *,
     body_weight: float | None = None,
     symmetric: bool = True,
-    progress: bool = True,
+    progress: bool | None = False,
     marker_names: Sequence[str] | None = None,
     likelihood: np.ndarray | None = None,
     pcutoff: float = 0.9,
@@ -550,8 +554,8 @@ def learn_skeleton(
         without absolute priors) lengths are bounded to [0.2, 5] x their generic value.
     symmetric : bool
         Enforce left/right symmetry (Alg. 2-3).
-    progress : bool
-        Show a progress bar.
+    progress : bool or None
+        Show a progress bar (tqdm); None: only when stderr is a terminal; default quiet.
     marker_names : sequence of str, optional
         Names of the label columns (ACM ``spot_``/``marker_..._start`` spellings accepted).
     likelihood : array_like, shape (n_cams, n_frames, n_markers), optional

@@ -12,7 +12,8 @@ learn          ``paths.manual_labels`` (DeepLabCut CollectedData)   ``skeleton.t
 track          session ``paths.labels`` (DeepLabCut predictions)    ``<output>/pose.npz``
 export         ``pose.npz``                                         ``pose_3d.csv``, ``.nwb``,
                                                                     ``.c3d`` (with ``fps``)
-plot           ``pose.npz``                                         ``<output>/plots/*.png``
+plot           ``pose.npz``                                         ``<output>/plots/*.png``,
+                                                                    ``view.html``
 =============  ==================================================  ===========================
 
 :func:`run_session` is the per-session function of :mod:`acm_rs.batch` (Dask).
@@ -21,6 +22,7 @@ plot           ``pose.npz``                                         ``<output>/p
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import logging
 import time
 from collections.abc import Iterator
@@ -66,8 +68,13 @@ def project_log(config: ProjectConfig) -> Iterator[Path]:
         handler.close()
 
 
+#: Whether stage lines also go to stdout (the command line); the log file always gets them.
+_ECHO: contextvars.ContextVar[bool] = contextvars.ContextVar("acm_rs_pipeline_echo", default=False)
+
+
 def _say(msg: str) -> None:
-    print(msg, flush=True)
+    if _ECHO.get():
+        print(msg, flush=True)
     log.info(msg)
 
 
@@ -120,7 +127,7 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
     spec = BoardSpec.from_dict(config.board())
     det = detect(
         [sources[n] for n in names], spec, camera_names=names,
-        cache=out.with_suffix(".detections.npz"), progress=True,
+        cache=out.with_suffix(".detections.npz"), progress=None,
     )  # fmt: skip
     res = calibrate(det.corners, spec.board_points, det.image_sizes, camera_names=names)
     res.save(out)
@@ -129,8 +136,13 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
     return out
 
 
-def _load_rig(config: ProjectConfig, session: Session | None = None):
+def _load_rig(config: ProjectConfig, session: Session | None = None, cameras=None):
+    """The calibrated rig in the order of ``cameras`` (default: the session's cameras, else
+    ``cameras.names``, else the calibration's), cameras matched by name
+    (:func:`acm_rs.project.match_cameras`). Returns ``(rig, {camera: (calibration name,
+    how)})``."""
     from .camera import CameraRig
+    from .project import match_cameras
 
     path = session.calibration if session is not None else _calibration_path(config)
     if path is None or not Path(path).is_file():
@@ -138,8 +150,14 @@ def _load_rig(config: ProjectConfig, session: Session | None = None):
             f"no calibration file {config.paths['calibration']} in the session or project; "
             "run `acm-rs run-all` (calibrate step) or copy an anipose calibration.toml there"
         )
-    names = session.cameras if session is not None else (config.cameras["names"] or None)
-    return CameraRig.load(path, names=names)
+    if cameras is None:
+        cameras = session.cameras if session is not None else (config.cameras["names"] or None)
+    calib_names = [c.name for c in CameraRig.load(path)]
+    if cameras is None:
+        cameras = calib_names
+    mapping = match_cameras(list(cameras), calib_names, config.cameras["regex"])
+    rig = CameraRig.load(path, names=[mapping[c][0] for c in cameras])
+    return rig, mapping
 
 
 def _generic_model(config: ProjectConfig):
@@ -156,33 +174,49 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
 
     Without manual labels the generic model is copied (and the log says so).
     """
-    from .dlc import read_labels
+    from .dlc import concat_labels, read_labels
     from .learning import learn_skeleton
-    from .project import LABEL_SUFFIXES, _files_by_camera
+    from .project import camera_table, find_manual_labels, read_dlc_config
 
     out = config.root / SKELETON_NAME
     if _skip(out, overwrite, "learn"):
         return out
     generic = _generic_model(config)
     folder = config.root / config.paths["manual_labels"]
-    files = _files_by_camera(folder, LABEL_SUFFIXES, config.camera_regex) if folder.is_dir() else {}
-    if not files:
-        _say(f"learn: no manual labels in {folder}; using the generic {generic.name} model")
+    dlc = read_dlc_config(config.root)
+    groups = find_manual_labels(folder, config.camera_regex, dlc.get("scorer") if dlc else None)
+    if not groups:
+        _say(
+            f"learn: no manual labels in {folder} (files or <video>/CollectedData_*.h5|.csv); "
+            f"using the generic {generic.name} model as skeleton.toml"
+        )
         generic.save(out)
         return out
-    rig = _load_rig(config)
-    names = [c.name for c in rig]
-    missing = [n for n in names if n not in files]
-    if missing:
-        raise ValueError(f"{folder}: no label file for camera(s) {missing}; found {sorted(files)}")
-    labels = read_labels([files[n] for n in names])
+    cams = sorted({c for g in groups.values() for c in g})
+    names = list(config.cameras["names"]) or cams
+    unknown = sorted(set(cams) - set(names))
+    if unknown:
+        raise ValueError(f"{folder}: labels of camera(s) {unknown}, not in cameras.names {names}")
+    rig, mapping = _load_rig(config, cameras=names)
+    for name, files in sorted(groups.items()):
+        table = camera_table(mapping, {f"labels {name or folder.name}": files})
+        for line in table.splitlines():
+            _say("learn: " + line)
+    sets = [
+        read_labels([g.get(c) for c in names], individual=config.project.get("individual"))
+        for g in groups.values()
+    ]
+    labels = concat_labels(sets)
     res = learn_skeleton(
         rig, generic, labels.points, body_weight=config.project.get("body_weight"),
-        marker_names=labels.bodyparts, progress=True, likelihood=labels.likelihood,
+        marker_names=labels.bodyparts, progress=None, likelihood=labels.likelihood,
         pcutoff=config.tracking["pcutoff"],
     )  # fmt: skip
     res.skeleton.save(out)
-    _say(f"learn: {labels.points.shape[1]} frames, RMS {res.rms:.2f} px -> {out}")
+    _say(
+        f"learn: {labels.points.shape[1]} labelled frames of {len(groups)} recording(s), "
+        f"RMS {res.rms:.2f} px -> {out}"
+    )
     for line in res.summary().splitlines():
         if "WARNING" in line or "note:" in line:
             _say("learn: " + line.strip())
@@ -209,15 +243,23 @@ def step_track(
         raise FileNotFoundError(
             f"{session.path / config.paths['labels']}: no DeepLabCut predictions for this session"
         )
-    rig = _load_rig(config, session)
+    from .project import camera_table
+
+    rig, mapping = _load_rig(config, session)
+    table = camera_table(mapping, {"video": session.videos, "2D poses": session.labels})
+    for line in table.splitlines():
+        _say(f"track {session.name}: " + line)
     skel_path = config.root / SKELETON_NAME
     skeleton = Skeleton.load(skel_path) if skel_path.is_file() else _generic_model(config)
-    ls = read_labels([session.labels[c] for c in session.cameras])
+    ls = read_labels(
+        [session.labels[c] for c in session.cameras], individual=config.project.get("individual")
+    )
     dt = int(config.tracking["dt"])
     lik = ls.likelihood[:, ::dt] if ls.likelihood is not None else None
     res = track(
         rig, skeleton, ls.points[:, ::dt], likelihood=lik, pcutoff=config.tracking["pcutoff"],
         max_iter=config.em["max_iter"], tol=config.em["tol"], marker_names=ls.bodyparts,
+        progress=None,
     )  # fmt: skip
     res.info["frames"] = ls.frames[::dt]
     folder.mkdir(parents=True, exist_ok=True)
@@ -229,7 +271,8 @@ def step_track(
 def step_export(
     config: ProjectConfig, session: Session, overwrite: bool = False, out: Path | None = None
 ) -> list[Path]:
-    """anipose CSV (+ variance sidecar) always; NWB and C3D when ``tracking.fps`` is set."""
+    """anipose CSV (+ variance sidecar) always; NWB, C3D and movement netCDF when the frame
+    rate is known (``tracking.fps`` or the videos' metadata)."""
     from . import export
     from .tracking import PoseResult
 
@@ -239,8 +282,13 @@ def step_export(
         return [csv]
     res = PoseResult.load(folder / POSE_NAME)
     files = export.to_anipose_csv(res, csv)
-    fps = config.tracking.get("fps")
+    video_fps = session_fps(config, session)
+    fps = video_fps / int(config.tracking["dt"]) if video_fps else None  # the tracked frames
     if fps:
+        try:
+            files.append(export.to_movement_file(res, folder / "pose_movement.nc", fps=video_fps))
+        except ImportError as exc:  # xarray/netCDF are the optional extra [movement]
+            _say(f"export {session.name}: no movement file ({exc})")
         files.append(
             export.to_nwb(
                 res,
@@ -251,9 +299,22 @@ def step_export(
         )
         files.append(export.to_c3d(res, folder / "pose.c3d", fps, joints=True))
     else:
-        _say(f"export {session.name}: tracking.fps not set; NWB and C3D skipped")
+        _say(
+            f"export {session.name}: no frame rate (tracking.fps unset, no video metadata); "
+            "NWB, C3D and movement files skipped"
+        )
     _say(f"export {session.name}: {', '.join(f.name for f in files)}")
     return files
+
+
+def session_fps(config: ProjectConfig, session: Session) -> float | None:
+    """Frame rate (Hz) of a session's videos: ``tracking.fps``, else the videos' metadata."""
+    from .project import videos_fps
+
+    fps = config.tracking.get("fps")
+    if fps:
+        return float(fps)
+    return videos_fps([session.videos[c] for c in session.cameras if c in session.videos])
 
 
 def step_plot(
@@ -267,7 +328,15 @@ def step_plot(
     if _skip(folder, overwrite, f"plot {session.name}"):
         return []
     res = PoseResult.load(_session_output(session, out) / POSE_NAME)
-    files = plot_all(res, folder, frame_rate=config.tracking.get("fps"))
+    fps = session_fps(config, session)
+    rate = fps / int(config.tracking["dt"]) if fps else None  # of the tracked frames
+    files = plot_all(res, folder, frame_rate=rate)
+    try:
+        from .plots.viewer import view_html
+
+        files.append(view_html(res, folder / "view.html", fps=rate))
+    except ImportError as exc:  # plotly is the optional extra [view]
+        _say(f"plot {session.name}: no 3D viewer ({exc})")
     _say(f"plot {session.name}: {len(files)} figures in {folder}")
     if session.videos and all(c in session.videos for c in session.cameras):
         from .plots import overlay_video
@@ -286,10 +355,25 @@ def step_plot(
 
 
 def run_all(
-    project: str | Path, overwrite: bool = False, steps: tuple[str, ...] = STEPS
+    project: str | Path,
+    overwrite: bool = False,
+    steps: tuple[str, ...] = STEPS,
+    verbose: bool = False,
 ) -> dict[str, str]:
     """Run ``steps`` on every session of a project; a failing session does not stop the
-    others. Returns ``{session name: "ok" | error message}``."""
+    others. Returns ``{session name: "ok" | error message}``.
+
+    One line per stage goes to the project's log file; with ``verbose`` (the command line)
+    also to stdout. Progress bars appear only on a terminal.
+    """
+    token = _ECHO.set(bool(verbose))
+    try:
+        return _run_all(project, overwrite, steps)
+    finally:
+        _ECHO.reset(token)
+
+
+def _run_all(project: str | Path, overwrite: bool, steps: tuple[str, ...]) -> dict[str, str]:
     bad = [s for s in steps if s not in STEPS]
     if bad:
         raise ValueError(f"unknown step(s) {bad}; steps are {list(STEPS)}")
@@ -317,16 +401,19 @@ def run_all(
             except (ValueError, OSError, ArithmeticError) as exc:
                 status[session.name] = f"{type(exc).__name__}: {exc}"
                 log.exception("session %s failed", session.name)
-                print(f"session {session.name} FAILED: {exc}", flush=True)
+                if _ECHO.get():
+                    print(f"session {session.name} FAILED: {exc}", flush=True)
         _say(f"acm-rs: {sum(v == 'ok' for v in status.values())}/{len(status)} sessions ok")
     return status
 
 
 def run_session(session_dir: str | Path, out_dir: str | Path) -> dict:
     """Track, export and plot one session (the default per-session function of
-    :func:`acm_rs.batch.run`); the project's ``config.toml`` is in the session's parent."""
+    :func:`acm_rs.batch.run`); the project's ``config.toml`` is in the session's parent (or in
+    the session folder itself: a DeepLabCut project)."""
     session_dir = Path(session_dir)
-    config = load_config(session_dir.parent / "config.toml")
+    own = session_dir / "config.toml"
+    config = load_config(own if own.is_file() else session_dir.parent / "config.toml")
     matches = [s for s in find_sessions(config) if s.path.resolve() == session_dir.resolve()]
     if not matches:
         raise ValueError(f"{session_dir} is not a session of the project {config.root}")
@@ -338,9 +425,11 @@ def run_session(session_dir: str | Path, out_dir: str | Path) -> dict:
     return {"pose": str(pose), "exports": [str(f) for f in files], "plots": len(plots)}
 
 
-def run_step(project: str | Path, step: str, overwrite: bool = False) -> dict[str, str]:
+def run_step(
+    project: str | Path, step: str, overwrite: bool = False, verbose: bool = False
+) -> dict[str, str]:
     """One step of the workflow on a project (``acm-rs <step> --project DIR``)."""
-    return run_all(project, overwrite=overwrite, steps=(step,))
+    return run_all(project, overwrite=overwrite, steps=(step,), verbose=verbose)
 
 
 def add_project_option(parser, step: str) -> None:
@@ -359,7 +448,7 @@ def project_step_or(args, step: str, func, required: tuple[str, ...]) -> int:
     """Dispatch for commands that also work on a project folder: with ``--project`` run the
     step there, else check the command's own required options and run ``func(args)``."""
     if getattr(args, "project", None):
-        status = run_step(args.project, step, overwrite=args.overwrite_step)
+        status = run_step(args.project, step, overwrite=args.overwrite_step, verbose=True)
         return 0 if all(v == "ok" for v in status.values()) else 1
     missing = [r for r in required if not getattr(args, r.lstrip("-").replace("-", "_"), None)]
     if missing:
@@ -371,7 +460,7 @@ def project_step_or(args, step: str, func, required: tuple[str, ...]) -> int:
 
 def _cmd_run_all(args) -> int:
     steps = tuple(args.steps.split(",")) if args.steps else STEPS
-    status = run_all(args.project, overwrite=args.overwrite, steps=steps)
+    status = run_all(args.project, overwrite=args.overwrite, steps=steps, verbose=True)
     return 0 if all(v == "ok" for v in status.values()) else 1
 
 
@@ -382,9 +471,13 @@ def _cmd_plot(args) -> int:
     src = Path(args.input)
     if src.is_dir():
         config = load_config(src / "config.toml")
-        with project_log(config):
-            for session in find_sessions(config):
-                step_plot(config, session, overwrite=args.overwrite)
+        token = _ECHO.set(True)
+        try:
+            with project_log(config):
+                for session in find_sessions(config):
+                    step_plot(config, session, overwrite=args.overwrite)
+        finally:
+            _ECHO.reset(token)
         return 0
     res = PoseResult.load(src)
     out = Path(args.output) if args.output else src.with_name(src.stem + "_plots")

@@ -11,6 +11,9 @@
         acm-rs/                      # outputs of this session (paths.output)
 
 Camera names are parsed from file names with ``cameras.regex``; see ``docs/project.md``.
+A DeepLabCut project folder (``config.yaml``, ``videos/``, ``labeled-data/``) is itself a
+session when ``paths.videos`` names its ``videos/`` folder (``acm-rs init`` on a DeepLabCut
+project writes such a config).
 """
 
 from __future__ import annotations
@@ -23,20 +26,32 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ._io import atomic_write
 
 __all__ = [
     "CONFIG_NAME",
     "ProjectConfig",
     "Session",
+    "camera_table",
+    "dlc_bodyparts",
+    "find_manual_labels",
     "find_sessions",
     "init_project",
     "load_config",
+    "match_cameras",
+    "pick_label_file",
+    "read_dlc_config",
+    "rig_for_files",
+    "video_fps",
+    "videos_fps",
 ]
 
 CONFIG_NAME = "config.toml"
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".ccv")
-LABEL_SUFFIXES = (".h5", ".csv")
+LABEL_SUFFIXES = (".h5", ".csv", ".slp")
+DLC_CONFIG = "config.yaml"
 
 
 @dataclass(frozen=True)
@@ -85,10 +100,35 @@ SCHEMA: dict[str, dict[str, _Opt]] = {
             "> 0 g",
             optional=True,
         ),
+        "individual": _Opt(
+            None,
+            (str,),
+            "multi-animal DeepLabCut/SLEAP files: the individual (track) to reconstruct",
+            lambda v: bool(v),
+            "an individual's name",
+            optional=True,
+        ),
     },
     "paths": {
         "videos": _Opt("videos", (str,), "per session: folder of the videos"),
-        "labels": _Opt("pose-2d", (str,), "per session: folder of the DeepLabCut 2D predictions"),
+        "labels": _Opt(
+            "pose-2d",
+            (str,),
+            "per session: folder of the 2D predictions (DeepLabCut/Lightning Pose .h5/.csv, "
+            "SLEAP .slp/.analysis.h5)",
+        ),
+        "labels_filter": _Opt(
+            "",
+            (str,),
+            "use only prediction files whose name contains this text (e.g. a DeepLabCut scorer "
+            "'DLC_resnet50_ratJan1shuffle1_100000'); empty: all",
+        ),
+        "prefer_filtered": _Opt(
+            False,
+            (bool,),
+            "use DeepLabCut's *_filtered predictions when present (default: the raw ones; the "
+            "tracking model smooths in time itself)",
+        ),
         "calibration": _Opt(
             "calibration/calibration.toml",
             (str,),
@@ -97,15 +137,18 @@ SCHEMA: dict[str, dict[str, _Opt]] = {
         "manual_labels": _Opt(
             "labeled-data",
             (str,),
-            "folder of DeepLabCut CollectedData_*.csv/.h5 used for skeleton learning",
+            "folder of DeepLabCut manual labels for skeleton learning: <video>/CollectedData_"
+            "<scorer>.h5|.csv (DeepLabCut's labeled-data layout) or CollectedData files",
         ),
         "output": _Opt("acm-rs", (str,), "per session: folder acm-rs writes its results to"),
     },
     "cameras": {
         "regex": _Opt(
-            r"cam([A-Za-z0-9]+)",
+            r"(?i)cam[-_]?[a-z0-9]+",
             (str,),
-            "regex finding the camera name in file names (first group, else the whole match)",
+            "regex finding the camera name in file names (first group, else the whole match); "
+            "names are matched to the calibration's exactly, else ignoring case, separators "
+            "and a 'cam' prefix (cam0 = Cam_0 = 0)",
             _regex_ok,
             "a valid regular expression",
         ),
@@ -154,7 +197,12 @@ SCHEMA: dict[str, dict[str, _Opt]] = {
         ),
         "dt": _Opt(1, (int,), "track every dt-th frame", lambda v: v >= 1, "an integer >= 1"),
         "fps": _Opt(
-            None, _NUM, "video frame rate in Hz (exports)", lambda v: v > 0, "> 0", optional=True
+            None,
+            _NUM,
+            "video frame rate in Hz (time axes, exports); absent: read from the session's videos",
+            lambda v: v > 0,
+            "> 0",
+            optional=True,
         ),
     },
     "em": {
@@ -367,43 +415,342 @@ class Session:
 
 
 def _camera_of(file: Path, regex: re.Pattern) -> str | None:
-    """Camera name in a file name; DeepLabCut outputs ``<video stem>DLC_<network>...`` are
-    matched on the video stem only."""
-    stem = file.stem.split("DLC_", 1)[0] if "DLC_" in file.stem else file.stem
+    """Camera name in a file (or folder) name; DeepLabCut outputs ``<video stem>DLC_<network>...``
+    are matched on the video stem only."""
+    stem = file.name if file.is_dir() else file.stem
+    stem = stem.split("DLC_", 1)[0] if "DLC_" in stem else stem
     m = regex.search(stem)
     if m is None:
         return None
     return m.group(1) if m.groups() and m.group(1) is not None else m.group(0)
 
 
-def _files_by_camera(folder: Path, suffixes: tuple[str, ...], regex: re.Pattern) -> dict:
-    out: dict[str, Path] = {}
+def _no_camera(f: Path, regex: re.Pattern) -> ValueError:
+    return ValueError(
+        f"{f}: no camera name matches cameras.regex {regex.pattern!r}; rename the file "
+        "or change the regex in config.toml"
+    )
+
+
+_SLEAP_TAGS = (".analysis", ".predictions")
+
+
+def _label_variant(f: Path) -> tuple[str, bool, int]:
+    """(identity, filtered, format rank) of a 2D label file: the DeepLabCut ``.h5`` and ``.csv``
+    of one analysis, and its ``_filtered`` versions, share the identity; so do a SLEAP ``.slp``
+    and its analysis ``.h5``. Lower rank = preferred format (``.h5`` needs no CSV parsing, an
+    analysis ``.h5`` no sleap-io)."""
+    stem = f.stem
+    for tag in _SLEAP_TAGS:
+        stem = stem.removesuffix(tag)
+    filtered = stem.endswith("_filtered")
+    stem = stem.removesuffix("_filtered")
+    rank = {".h5": 0, ".csv": 1, ".slp": 2}.get(f.suffix.lower(), 3)
+    return stem, filtered, rank
+
+
+def pick_label_file(
+    files: list[Path], *, prefer_filtered: bool = False, camera: str = "", folder: Path = Path()
+) -> tuple[Path, list[Path]]:
+    """Choose the label file of one camera among the files its name matched.
+
+    DeepLabCut writes ``.h5`` and ``.csv`` of the same predictions, and ``filterpredictions``
+    adds ``*_filtered`` versions; SLEAP users often keep the ``.slp`` and its analysis ``.h5``.
+    These are one analysis: the raw (or, with ``prefer_filtered``, the filtered) ``.h5`` is
+    used. Files of different analyses (two networks, two recordings) are an error.
+
+    Returns
+    -------
+    chosen : Path
+    skipped : list of Path
+        The other files of the same analysis.
+    """
+    groups: dict[str, list[Path]] = {}
+    for f in files:
+        groups.setdefault(_label_variant(f)[0], []).append(f)
+    if len(groups) > 1:
+        names = ", ".join(sorted(f.name for f in files))
+        raise ValueError(
+            f"{folder}: two files for camera {camera!r} from different analyses: {names}; keep "
+            "one, or set paths.labels_filter in config.toml to text only the wanted files contain"
+        )
+
+    def order(f: Path) -> tuple[bool, int, str]:
+        _, filtered, rank = _label_variant(f)
+        return (filtered != prefer_filtered, rank, f.name)
+
+    ranked = sorted(files, key=order)
+    return ranked[0], ranked[1:]
+
+
+def _files_by_camera(
+    folder: Path,
+    suffixes: tuple[str, ...],
+    regex: re.Pattern,
+    *,
+    prefer_filtered: bool = False,
+    contains: str = "",
+    skipped: list[Path] | None = None,
+) -> dict:
+    """``{camera: file}`` in ``folder``. For videos, DeepLabCut's labelled videos
+    (``<video>DLC_<network>..._labeled.mp4``) are not recordings and are left out; for labels
+    (``LABEL_SUFFIXES``) one file per camera is chosen with :func:`pick_label_file`."""
+    out: dict[str, list[Path]] = {}
     if not folder.is_dir():
-        return out
+        return {}
+    labels = suffixes == LABEL_SUFFIXES
     for f in sorted(folder.iterdir()):
         if not f.is_file() or f.name.startswith(".") or f.suffix.lower() not in suffixes:
             continue
+        if not labels and "DLC_" in f.stem:
+            continue  # a video DeepLabCut drew its predictions on
+        if labels and contains and contains not in f.name:
+            continue
         cam = _camera_of(f, regex)
         if cam is None:
+            raise _no_camera(f, regex)
+        out.setdefault(cam, []).append(f)
+    chosen = {}
+    for cam, files in out.items():
+        if not labels:
+            if len(files) > 1:
+                raise ValueError(
+                    f"{folder}: two files for camera {cam!r}: {files[0].name} and "
+                    f"{files[1].name}; keep one"
+                )
+            chosen[cam] = files[0]
+            continue
+        chosen[cam], rest = pick_label_file(
+            files, prefer_filtered=prefer_filtered, camera=cam, folder=folder
+        )
+        if skipped is not None:
+            skipped += rest
+    return chosen
+
+
+def read_dlc_config(folder: str | Path) -> dict | None:
+    """A DeepLabCut project's ``config.yaml`` (``Task``, ``scorer``, ``bodyparts`` or
+    ``multianimalbodyparts`` + ``individuals``, ``video_sets``), or None without one."""
+    import yaml
+
+    p = Path(folder) / DLC_CONFIG
+    if not p.is_file():
+        return None
+    try:
+        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{p}: invalid YAML: {exc}") from None
+    if not isinstance(doc, dict) or "scorer" not in doc:
+        raise ValueError(f"{p}: not a DeepLabCut config.yaml (no 'scorer')")
+    return doc
+
+
+def dlc_bodyparts(doc: Mapping[str, Any]) -> list[str]:
+    """Body parts of a DeepLabCut config: ``bodyparts``, or for multi-animal projects
+    ``multianimalbodyparts`` (+ ``uniquebodyparts``)."""
+    if doc.get("multianimalproject"):
+        return list(doc.get("multianimalbodyparts") or []) + list(doc.get("uniquebodyparts") or [])
+    bps = doc.get("bodyparts") or []
+    return [] if bps == "MULTI!" else list(bps)
+
+
+def find_manual_labels(
+    folder: str | Path, regex: re.Pattern, scorer: str | None = None
+) -> dict[str, dict[str, Path]]:
+    """Manual labels for skeleton learning, grouped by recording and camera.
+
+    DeepLabCut's layout ``labeled-data/<video stem>/CollectedData_<scorer>.h5|.csv`` (camera
+    from the video stem, recording = the stem without the camera name, so ``s1-cam0`` and
+    ``s1-cam1`` label the same frames) and files directly in ``folder`` (one recording).
+    ``<video>_labeled`` folders (``check_labels``) and machine labels are ignored.
+
+    Parameters
+    ----------
+    folder : path
+    regex : compiled cameras.regex
+    scorer : str, optional
+        The DeepLabCut scorer (``config.yaml``): its ``CollectedData_<scorer>`` file is used
+        when a folder holds several.
+
+    Returns
+    -------
+    dict
+        ``{recording: {camera: file}}``; empty if there are no labels.
+    """
+    root = Path(folder)
+    out: dict[str, dict[str, Path]] = {}
+    if not root.is_dir():
+        return out
+    direct = _files_by_camera(root, LABEL_SUFFIXES, regex)
+    if direct:
+        out[""] = direct
+    for sub in sorted(p for p in root.iterdir() if p.is_dir()):
+        if sub.name.startswith(".") or sub.name.endswith("_labeled"):
+            continue
+        files = [
+            f
+            for f in sorted(sub.iterdir())
+            if f.is_file()
+            and f.name.startswith("CollectedData_")
+            and f.suffix.lower() in (".h5", ".csv")
+        ]
+        if not files:
+            continue
+        if scorer is not None and any(f.stem == f"CollectedData_{scorer}" for f in files):
+            files = [f for f in files if f.stem == f"CollectedData_{scorer}"]
+        if len({f.stem for f in files}) > 1:
             raise ValueError(
-                f"{f}: no camera name matches cameras.regex {regex.pattern!r}; rename the file "
-                "or change the regex in config.toml"
+                f"{sub}: labels of several scorers {sorted({f.stem for f in files})}; keep one "
+                "(or put the DeepLabCut config.yaml with its scorer in the project folder)"
             )
-        if cam in out:
-            if out[cam].suffix.lower() == ".csv" and f.suffix.lower() == ".h5":
-                out[cam] = f  # DeepLabCut writes both; prefer the .h5
-                continue
-            if out[cam].suffix.lower() == ".h5" and f.suffix.lower() == ".csv":
-                continue
+        m = regex.search(sub.name)
+        if m is None:
             raise ValueError(
-                f"{folder}: two files for camera {cam!r}: {out[cam].name} and {f.name}; keep one"
+                f"{sub}: no camera name in this labeled-data folder matches cameras.regex "
+                f"{regex.pattern!r}; rename the video (and folder) or change the regex"
             )
-        out[cam] = f
+        cam = m.group(1) if m.groups() and m.group(1) is not None else m.group(0)
+        recording = (sub.name[: m.start()] + "*" + sub.name[m.end() :]).strip("-_ ")
+        group = out.setdefault(recording, {})
+        if cam in group:
+            raise ValueError(f"{root}: two labeled-data folders for {recording!r} camera {cam!r}")
+        group[cam] = min(files, key=lambda f: (f.suffix.lower() != ".h5", f.name))
     return out
 
 
+def _norm_camera(name: str) -> str:
+    s = re.sub(r"[^a-z0-9]", "", name.lower())
+    s = re.sub(r"^cam(era)?", "", s)
+    return s or name.lower()
+
+
+def match_cameras(
+    cameras: list[str], calibration: list[str], regex: str | None = None
+) -> dict[str, tuple[str, str]]:
+    """Match camera names from file names to a calibration's camera names.
+
+    A name matches exactly, else ignoring case, separators and a leading ``cam``/``camera``
+    (``cam0`` = ``Cam_0`` = ``0``) when that is unambiguous.
+
+    Returns
+    -------
+    dict
+        ``{camera: (calibration name, how)}``, how in ``"exact"``, ``"normalised"``.
+
+    Raises
+    ------
+    ValueError
+        A camera without a match (or with several), naming both lists and the regex.
+    """
+    out: dict[str, tuple[str, str]] = {}
+    calib = list(calibration)
+    norm = {}
+    for c in calib:
+        norm.setdefault(_norm_camera(c), []).append(c)
+    bad = []
+    for cam in cameras:
+        if cam in calib:
+            out[cam] = (cam, "exact")
+            continue
+        cands = norm.get(_norm_camera(cam), [])
+        if len(cands) == 1:
+            out[cam] = (cands[0], "normalised")
+        else:
+            bad.append(cam)
+    used = [v[0] for v in out.values()]
+    if bad or len(set(used)) != len(used):
+        hint = f" (camera names come from file names with cameras.regex {regex!r})" if regex else ""
+        raise ValueError(
+            f"cameras {bad or cameras} match no single camera of the calibration{hint}; "
+            f"file cameras: {list(cameras)}, calibration cameras: {calib}. Rename the files, "
+            "change cameras.regex, or rename the cameras in the calibration file"
+        )
+    return out
+
+
+def camera_table(
+    mapping: Mapping[str, tuple[str, str]], files: Mapping[str, Mapping[str, Path]]
+) -> str:
+    """A text table of which file belongs to which calibrated camera.
+
+    Parameters
+    ----------
+    mapping : dict
+        From :func:`match_cameras`.
+    files : dict
+        ``{column title: {camera: file}}``, e.g. ``{"video": session.videos, ...}``.
+    """
+    head = ["camera", "calibration", "match"] + list(files)
+    rows = [
+        [cam, calib, how] + [files[k][cam].name if cam in files[k] else "-" for k in files]
+        for cam, (calib, how) in mapping.items()
+    ]
+    widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip()
+                     for r in [head] + rows)  # fmt: skip
+
+
+def rig_for_files(calibration: str | Path, files: list[str | Path], names: list[str] | None = None):
+    """The calibrated rig in the order of per-camera files given on the command line.
+
+    With ``names`` (``--camera-names``) those cameras in that order. Otherwise, when every
+    file name holds a camera name (default ``cameras.regex``) matching one calibrated camera
+    (:func:`match_cameras`), the rig is put in the files' order; else the calibration's order
+    (the files must then be given in it).
+
+    Returns
+    -------
+    rig : CameraRig
+    table : str or None
+        :func:`camera_table` of the match made from the file names (None if not).
+    """
+    from .camera import CameraRig
+
+    if names:
+        return CameraRig.load(calibration, names=names), None
+    rig = CameraRig.load(calibration)
+    regex = re.compile(SCHEMA["cameras"]["regex"].default)
+    paths = [Path(f) for f in files]
+    found = [_camera_of(p, regex) for p in paths]
+    if len(paths) != len(rig) or None in found or len(set(found)) != len(found):
+        return rig, None
+    try:
+        mapping = match_cameras(found, [c.name for c in rig])
+    except ValueError:
+        return rig, None
+    ordered = CameraRig.load(calibration, names=[mapping[c][0] for c in found])
+    table = camera_table(mapping, {"file": dict(zip(found, paths, strict=True))})
+    return ordered, table
+
+
+def video_fps(path: str | Path) -> float | None:
+    """Frame rate (Hz) in a video's metadata (OpenCV), or None if it has none."""
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    try:
+        fps = float(cap.get(cv2.CAP_PROP_FPS)) if cap.isOpened() else 0.0
+    finally:
+        cap.release()
+    return fps if np.isfinite(fps) and 0 < fps < 10_000 else None
+
+
+def videos_fps(files: list[Path]) -> float | None:
+    """The common frame rate (Hz) of videos; None if none has one; error if they disagree."""
+    rates = {f: video_fps(f) for f in files}
+    known = {f: r for f, r in rates.items() if r is not None}
+    if not known:
+        return None
+    values = sorted(set(round(r, 3) for r in known.values()))
+    if values[-1] - values[0] > 1e-3 * values[-1]:
+        listing = ", ".join(f"{f.name} {r:g}" for f, r in known.items())
+        raise ValueError(f"the videos have different frame rates ({listing} Hz); set tracking.fps")
+    return float(np.median(list(known.values())))
+
+
 def find_sessions(config: ProjectConfig) -> list[Session]:
-    """The sessions of a project: subfolders holding ``paths.videos`` or ``paths.labels``.
+    """The sessions of a project: the project folder itself (a DeepLabCut project) and the
+    subfolders holding ``paths.videos`` or ``paths.labels``.
 
     Camera names come from the file names via ``cameras.regex``. With ``cameras.names`` set,
     each named camera must have a file in each present folder, and every file must belong to
@@ -422,14 +769,18 @@ def find_sessions(config: ProjectConfig) -> list[Session]:
     root = config.root
     names = list(config.cameras["names"])
     sessions = []
-    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
-        if folder.name.startswith((".", "_")):
+    folders = [root] + sorted(p for p in root.iterdir() if p.is_dir())
+    for folder in folders:
+        if folder.name.startswith((".", "_")) and folder != root:
             continue
         vdir, ldir = folder / config.paths["videos"], folder / config.paths["labels"]
         if not (vdir.is_dir() or ldir.is_dir()):
             continue
         videos = _files_by_camera(vdir, VIDEO_SUFFIXES, regex)
-        labels = _files_by_camera(ldir, LABEL_SUFFIXES, regex)
+        labels = _files_by_camera(
+            ldir, LABEL_SUFFIXES, regex, prefer_filtered=config.paths["prefer_filtered"],
+            contains=config.paths["labels_filter"],
+        )  # fmt: skip
         found = {"videos": videos, "labels": labels}
         for kind, files in found.items():
             d = vdir if kind == "videos" else ldir
@@ -453,7 +804,8 @@ def find_sessions(config: ProjectConfig) -> list[Session]:
         if not names and videos and labels and set(videos) != set(labels):
             raise ValueError(
                 f"{folder}: videos name cameras {sorted(videos)} but labels name "
-                f"{sorted(labels)}; every camera needs both (or set cameras.names)"
+                f"{sorted(labels)} (cameras.regex {regex.pattern!r}); every camera needs both "
+                "(or set cameras.names)"
             )
         calib = None
         for base in (folder, root):
@@ -481,20 +833,98 @@ def find_sessions(config: ProjectConfig) -> list[Session]:
 
 
 # -- command line ---------------------------------------------------------------------------------
+def _project_videos(root: Path, videos: str) -> list[Path]:
+    out = []
+    for folder in [root / videos] + sorted(p / videos for p in root.iterdir() if p.is_dir()):
+        if folder.is_dir():
+            out += [
+                f
+                for f in sorted(folder.iterdir())
+                if f.suffix.lower() in VIDEO_SUFFIXES and "DLC_" not in f.stem
+            ]
+    return out
+
+
+def _dlc_summary(doc: Mapping[str, Any], model: str) -> list[str]:
+    from .labels import match_marker_names
+    from .models import load_name_or_file
+
+    bps = dlc_bodyparts(doc)
+    lines = [
+        f"  DeepLabCut project {doc.get('Task', '?')!r} (scorer {doc.get('scorer')!r}): "
+        f"{len(bps)} body parts"
+        + (f", individuals {list(doc.get('individuals') or [])}" if doc.get("multianimalproject")
+           else "")
+    ]  # fmt: skip
+    try:
+        sk = load_name_or_file(model)
+    except ValueError:
+        return lines
+    unknown = []
+    for bp in bps:
+        try:
+            match_marker_names([bp], sk)
+        except ValueError:
+            unknown.append(bp)
+    lines.append(
+        f"  {len(bps) - len(unknown)} of them are markers of the model {sk.name!r}"
+        + (f"; not in the model (ignored by tracking): {unknown}" if unknown else "")
+    )
+    return lines
+
+
 def _cmd_init(args) -> int:
-    overrides: dict[str, dict] = {}
+    root = Path(args.path)
+    overrides: dict[str, dict] = {"project": {}, "paths": {}, "tracking": {}}
     if args.model:
-        overrides["project"] = {"model": args.model}
-    path = init_project(args.path, overwrite=args.overwrite, **overrides)
-    print(f"acm-rs init: wrote {path}")
-    print("  edit it (board, camera regex, pcutoff), then put one folder per session beside it")
+        overrides["project"]["model"] = args.model
+    notes = []
+    dlc = read_dlc_config(root) if root.is_dir() else None
+    if dlc is not None:
+        # DeepLabCut keeps videos and their predictions in videos/, manual labels in
+        # labeled-data/<video>/: the project folder is the (one) session
+        overrides["paths"].update(videos="videos", labels="videos", manual_labels="labeled-data")
+        notes += _dlc_summary(dlc, args.model or SCHEMA["project"]["model"].default)
+        inds = [i for i in (dlc.get("individuals") or []) if i != "single"]
+        if dlc.get("multianimalproject") and len(inds) == 1:
+            overrides["project"]["individual"] = inds[0]
+    fps = args.fps
+    if fps is None and root.is_dir():
+        vids = _project_videos(root, overrides["paths"].get("videos", "videos"))
+        fps = videos_fps(vids)
+        if fps is not None:
+            notes.append(f"  frame rate {fps:g} Hz from the metadata of {len(vids)} video(s)")
+    if fps is None:
+        raise ValueError(
+            f"{root}: no video with a frame rate in its metadata; give it with --fps HZ "
+            "(needed for time axes and the NWB/C3D/movement exports)"
+        )
+    overrides["tracking"]["fps"] = float(fps)
+    path = init_project(root, overwrite=args.overwrite, **{k: v for k, v in overrides.items() if v})
+    print(f"acm-rs init: wrote {path}" + (" for a DeepLabCut project" if dlc is not None else ""))
+    for line in notes:
+        print(line)
+    if dlc is None:
+        print("  edit it (board, camera regex, pcutoff), then put one folder per session beside it")
+    else:
+        print("  put one board video per camera in calibration/, then run `acm-rs run-all`")
     return 0
 
 
 def add_subcommands(sub) -> None:
     """Add ``acm-rs init`` to an argparse subparsers object."""
-    p = sub.add_parser("init", help="create a project folder with a commented config.toml")
+    p = sub.add_parser(
+        "init",
+        help="create a project folder with a commented config.toml (also inside a DeepLabCut "
+        "project)",
+        description="Writes config.toml. In a DeepLabCut project folder (config.yaml) the "
+        "paths point to its videos/ and labeled-data/. The frame rate comes from the videos' "
+        "metadata, else --fps is required.",
+    )
     p.add_argument("path", nargs="?", default=".", help="project folder (default: here)")
     p.add_argument("--model", help="'rat', 'mouse' or a skeleton TOML path (default rat)")
+    p.add_argument(
+        "--fps", type=float, help="video frame rate in Hz (default: from the videos' metadata)"
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing config.toml")
     p.set_defaults(func=_cmd_init)

@@ -54,7 +54,7 @@ def run_acm(
     dataset: str | Path,
     out: str | Path,
     *,
-    progress: bool = True,
+    progress: bool | None = False,
     max_frames: int | None = None,
 ) -> AcmRun:
     """Learn the skeleton from the manual labels and track the configured frame range.
@@ -140,7 +140,7 @@ def run_acm(
 
 
 def _cmd_run_acm(args) -> int:
-    res = run_acm(args.dataset, args.output, max_frames=args.max_frames)
+    res = run_acm(args.dataset, args.output, max_frames=args.max_frames, progress=None)
     s = res.seconds
     print(
         f"acm-rs run-acm: learned the skeleton in {s['learn']:.1f} s (RMS "

@@ -36,7 +36,9 @@ def add_subcommand(sub) -> None:
     p.add_argument("--report", help="JSON QC report (default: <output>.report.json)")
     p.add_argument("--qc-png", help="QC figure (default: <output>.qc.png)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--no-progress", action="store_true", help="no progress bars (shown only on a terminal)"
+    )
     add_project_option(p, "calibrate")
     p.set_defaults(func=_dispatch)
 
@@ -69,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
         stride=args.stride,
         camera_names=args.camera_names,
         cache=cache,
-        progress=not args.no_progress,
+        progress=False if args.no_progress else None,
     )
     names = det.camera_names
     boards = ", ".join(f"{n}: {int(k)}" for n, k in zip(names, det.n_boards, strict=True))

@@ -169,7 +169,7 @@ def detect(
     stride: int = 1,
     camera_names: Sequence[str] | None = None,
     cache: str | Path | None = None,
-    progress: bool = True,
+    progress: bool | None = False,
 ) -> Detections:
     """Detect the board in every camera's images or video.
 
@@ -187,8 +187,8 @@ def detect(
     cache : path, optional
         NPZ detection cache: loaded when it matches ``sources``, ``spec`` and ``stride``,
         written (atomically) otherwise.
-    progress : bool
-        Show a tqdm progress bar per camera.
+    progress : bool or None
+        Show a tqdm progress bar per camera; None: only when stderr is a terminal.
 
     Returns
     -------
@@ -293,12 +293,13 @@ def _read_image(path: Path) -> np.ndarray:
     return img
 
 
-def _progress(it, total, desc: str, enabled: bool):
-    if not enabled:
+def _progress(it, total, desc: str, enabled: bool | None):
+    if enabled is False:
         return it
     from tqdm.auto import tqdm
 
-    return tqdm(it, total=total, desc=desc, unit="frame")
+    disable = None if enabled is None else False  # None: a bar only on a terminal
+    return tqdm(it, total=total, desc=desc, unit="frame", disable=disable)
 
 
 # -- cache ----------------------------------------------------------------------------------

@@ -311,8 +311,8 @@ class CalibrationResult:
         s = rep["summary"]
         w = max(6, *(len(c["name"]) for c in rep["cameras"]))
         head = (
-            f"{'camera':<{w}} {'views':>5} {'corners':>7} {'rms px':>7} {'median':>7} "
-            f"{'max':>7} {'fx':>8} {'fy':>8} {'k1':>7} {'cover':>5}"
+            f"{'camera':<{w}} {'views':>5} {'corners':>7} {'rms px':>7} {'med px':>7} "
+            f"{'max px':>7} {'fx px':>8} {'fy px':>8} {'k1':>7} {'cover':>5}"
         )
         lines = [head, "-" * len(head)]
         for c in rep["cameras"]:

@@ -139,11 +139,13 @@ class EvalResult:
             ]
         return list(edges_s), rows
 
-    def table(self) -> str:
-        """The summary as a Markdown table."""
+    def table(self, units: str = "mm") -> str:
+        """The summary as a Markdown table: reconstruction errors of the removed marker-frames
+        in ``units`` (those of the positions evaluated), fill time in s."""
         s = self.summary()
+        u = f" ({units})"
         lines = [
-            "| method | median | mean | SD | Q3 | max | time (s) |",
+            f"| method | median{u} | mean{u} | SD{u} | Q3{u} | max{u} | time (s) |",
             "|---|---|---|---|---|---|---|",
         ]
         for m, v in s.items():

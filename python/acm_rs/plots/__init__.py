@@ -3,6 +3,8 @@
 >>> from acm_rs import plots
 >>> plots.plot_all(result, "session/plots", pdf=True)  # doctest: +SKIP
 >>> plots.overlay_video(result, ["cam0.mp4", "cam1.mp4"], "session/overlay.mp4")  # doctest: +SKIP
+>>> from acm_rs.plots.viewer import view_html  # needs plotly
+>>> view_html(result, "session/view.html", fps=100)  # doctest: +SKIP
 """
 
 from .overlay import overlay_video

@@ -17,13 +17,16 @@ def _frame_slice(spec: str | None, n: int) -> slice:
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
-    from ..camera import CameraRig
     from ..dlc import read_labels
     from ..models import load_name_or_file
+    from ..project import rig_for_files
     from .bundle import write_bundle
     from .track import track
 
-    rig = CameraRig.load(args.calibration, names=args.camera_names)
+    rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names)
+    if table:
+        print("acm-rs track: cameras matched by the names in the files:\n  "
+              + table.replace("\n", "\n  "))  # fmt: skip
     if len(args.dlc) != len(rig):
         raise ValueError(
             f"{len(args.dlc)} DeepLabCut files for {len(rig)} cameras (give one per camera in "
@@ -56,7 +59,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         print(f"  wrote {path}; smooth it with: acm-smooth {path}")
         return 0
     res = track(
-        rig, skeleton, points, method=args.method, progress=True, motion=args.motion,
+        rig, skeleton, points, method=args.method, progress=None, motion=args.motion,
         noise_model=args.noise_model, **opts,
     )  # fmt: skip
     res.info["frames"] = ls.frames[sel]
@@ -70,6 +73,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
     for f in files:
         print(f"  wrote {f}")
     return 0
+
+
+FORMATS = ("anipose", "nwb", "c3d", "npz", "movement")
 
 
 def _export(res, fmt: str, out: Path, rate: float | None, points: str) -> list[Path]:
@@ -92,7 +98,10 @@ def _export(res, fmt: str, out: Path, rate: float | None, points: str) -> list[P
         return [export.to_c3d(res, out.with_suffix(".c3d"), rate, joints=True)]
     if fmt == "npz":
         return [export.to_npz(res, out.with_suffix(".npz"))]
-    raise ValueError(f"unknown export format {fmt!r}; choose from anipose, nwb, c3d, npz")
+    if fmt == "movement":
+        path = out.with_name(out.stem + "_movement.nc")
+        return [export.to_movement_file(res, path, fps=rate, points=points)]
+    raise ValueError(f"unknown export format {fmt!r}; choose from {', '.join(FORMATS)}")
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
@@ -108,8 +117,20 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_view(args: argparse.Namespace) -> int:
+    from ..plots.viewer import view_html
+    from .result import PoseResult
+
+    res = PoseResult.load(args.input)
+    out = Path(args.output) if args.output else Path(args.input).with_suffix(".html")
+    view_html(res, out, fps=args.fps, max_frames=args.max_frames)
+    print(f"acm-rs view: wrote {out} ({out.stat().st_size / 1e6:.1f} MB, opens offline)")
+    return 0
+
+
 def add_subcommands(sub) -> None:
-    """Add ``acm-rs track`` and ``acm-rs export`` to an argparse subparsers object."""
+    """Add ``acm-rs track``, ``acm-rs export`` and ``acm-rs view`` to an argparse subparsers
+    object."""
     from ..pipeline import add_project_option, project_step_or
 
     p = sub.add_parser(
@@ -119,12 +140,22 @@ def add_subcommands(sub) -> None:
         "smoothed posterior (OUT.npz, OUT_joints.csv; exports on request).",
     )
     p.add_argument("--calibration", help="anipose calibration.toml")
-    p.add_argument("--camera-names", nargs="+", help="camera names in the order of --dlc")
+    p.add_argument(
+        "--camera-names", nargs="+",
+        help="calibrated camera names in the order of --dlc (default: from the file names "
+        "when each names one camera, e.g. rat-cam0DLC_...h5; else the calibration's order)",
+    )  # fmt: skip
     p.add_argument(
         "--skeleton", default="rat", help="learned skeleton TOML (acm-rs learn) or a model name"
     )
-    p.add_argument("--dlc", nargs="+", help="DeepLabCut .h5/.csv, one per camera")
-    p.add_argument("--individual", help="individual in multi-animal DeepLabCut files")
+    p.add_argument(
+        "--dlc", nargs="+",
+        help="2D poses, one file per camera: DeepLabCut or Lightning Pose .h5/.csv, SLEAP "
+        ".slp/.analysis.h5",
+    )  # fmt: skip
+    p.add_argument(
+        "--individual", help="individual (DeepLabCut) or track (SLEAP) in multi-animal files"
+    )
     p.add_argument("--frames", dest="frame_range", help="frame range START:END (row indices)")
     p.add_argument("--pcutoff", type=float, default=0.9, help="likelihood cutoff (0.9)")
     p.add_argument("--max-iter", type=int, default=100, help="EM iterations at most (100)")
@@ -153,8 +184,11 @@ def add_subcommands(sub) -> None:
         "--noise-model", choices=["gauss", "student"], default="gauss",
         help="measurement noise: Gaussian (the paper's, with the outlier gate) or Student-t",
     )  # fmt: skip
-    p.add_argument("--export", nargs="+", choices=["anipose", "nwb", "c3d"], help="also write")
-    p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D exports")
+    p.add_argument(
+        "--export", nargs="+", choices=[f for f in FORMATS if f != "npz"],
+        help="also write these formats (movement: netCDF for the movement toolbox)",
+    )  # fmt: skip
+    p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D/movement exports")
     p.add_argument("--plots", help="folder for the tracking figures")
     p.add_argument("--bundle", action="store_true", help="only write OUT.bundle.npz for acm-smooth")
     p.add_argument("-o", "--output", help="output prefix, e.g. out/session1")
@@ -168,17 +202,35 @@ def add_subcommands(sub) -> None:
     e = sub.add_parser("export", help="convert a tracking result (.npz) to other formats")
     e.add_argument("input", nargs="?", help="result written by acm-rs track (OUT.npz)")
     e.add_argument(
-        "--format", nargs="+", choices=["anipose", "nwb", "c3d", "npz"],
-        help="output formats (anipose CSV, NWB/ndx-pose, C3D, NPZ)",
+        "--format", nargs="+", choices=FORMATS,
+        help="output formats (anipose CSV, NWB/ndx-pose, C3D, NPZ, movement netCDF)",
     )  # fmt: skip
     e.add_argument(
         "--points", choices=["joints", "markers"], default="joints",
         help="export the joints (default) or the surface markers",
     )  # fmt: skip
-    e.add_argument("--rate", type=float, help="frame rate (Hz), needed for C3D")
+    e.add_argument(
+        "--rate", type=float,
+        help="video frame rate (Hz): needed for C3D; time in seconds for NWB and movement",
+    )  # fmt: skip
     e.add_argument("-o", "--output", help="output prefix (default: next to the input)")
     add_project_option(e, "export")
     e.set_defaults(func=lambda a: project_step_or(a, "export", _cmd_export, ("input", "--format")))
+
+    v = sub.add_parser(
+        "view",
+        help="write one self-contained HTML file showing a result in 3D (animated, offline)",
+        description="3D skeleton with a time slider and play button, joints coloured by their "
+        "posterior SD, cameras and floor, and a per-joint trace panel. Needs plotly.",
+    )
+    v.add_argument("input", help="result written by acm-rs track (OUT.npz)")
+    v.add_argument("-o", "--output", help="HTML file to write (default: INPUT with .html)")
+    v.add_argument("--fps", type=float, help="video frame rate (Hz) for a time axis in seconds")
+    v.add_argument(
+        "--max-frames", type=int, default=1500,
+        help="animate at most this many frames (every k-th of longer results; default 1500)",
+    )  # fmt: skip
+    v.set_defaults(func=_cmd_view)
 
 
 __all__ = ["add_subcommands"]

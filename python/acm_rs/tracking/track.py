@@ -239,11 +239,18 @@ def _velocity_worse(rw: list[dict], vel: list[dict]) -> str:
     return ""
 
 
+def _on_terminal(progress: bool | None) -> bool:
+    """``progress`` with None meaning "when stderr is a terminal"."""
+    if progress is None:
+        return bool(getattr(sys.stderr, "isatty", lambda: False)())
+    return bool(progress)
+
+
 class _Printer:
     """One line per EM iteration on stderr (or nothing)."""
 
-    def __init__(self, enabled: bool) -> None:
-        self.enabled = enabled
+    def __init__(self, enabled: bool | None) -> None:
+        self.enabled = _on_terminal(enabled)
 
     def __call__(self, iteration: int, delta: float, seconds: float, stats: dict) -> bool:
         if self.enabled:
@@ -318,7 +325,7 @@ def track(
     joint_limits: bool = True,
     max_iter: int = 100,
     tol: float = 0.05,
-    progress: bool = True,
+    progress: bool | None = False,
     method: str = "ukf",
     gate: float | None = DEFAULT_GATE,
     normalization: Normalization | None = None,
@@ -384,8 +391,9 @@ def track(
         At most this many iterated posterior linearisations of a frame's update where the
         single unscented update of Alg. 6 does not hold (the first frame with detections
         after a stretch without any); 0 gives the paper's filter.
-    progress : bool
-        Print one line per EM iteration to stderr.
+    progress : bool or None
+        Print one line per EM iteration and a summary to stderr; None: only when stderr is
+        a terminal (what the command line passes); default False (quiet).
     gate : float or None
         Innovation gate against confident outliers: an image point whose innovation lies
         outside this probability mass of its predicted distribution is ignored in that frame
@@ -455,7 +463,7 @@ def track(
                 "normalization": _norm_dict(norm), "seconds": time.perf_counter() - t_start,
             },
         )  # fmt: skip
-        if progress:
+        if _on_terminal(progress):
             print(result.summary(), file=sys.stderr)
         return result
 
@@ -546,6 +554,6 @@ def track(
             file=sys.stderr,
         )
     _warn_implausible_fit(result, fit_px)
-    if progress:
+    if _on_terminal(progress):
         print(result.summary(), file=sys.stderr)
     return result
