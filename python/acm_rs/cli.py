@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import traceback
 from collections.abc import Sequence
 
 from ._version import __version__
@@ -106,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(prog="acm-rs", description=__doc__)
     p.add_argument("--version", action="version", version=f"acm-rs {__version__}")
+    p.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser(
         "demo", help="the whole pipeline on a synthetic rat: calibrate, learn, track, export, plots"
@@ -176,8 +178,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args))
-    except (ValueError, OSError) as exc:
-        print(f"acm-rs: error: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        # docs/architecture.md, error and overwrite policy: Ctrl-C exits 130
+        print("acm-rs: interrupted (Ctrl-C); unfinished outputs were not written", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, ArithmeticError) as exc:
+        # input and numerical problems: one line naming the file and the fix; --debug for more
+        if args.debug:
+            traceback.print_exc()
+        kind = "numerical error" if isinstance(exc, ArithmeticError) else "error"
+        print(f"acm-rs: {kind}: {exc}", file=sys.stderr)
         return 1
 
 

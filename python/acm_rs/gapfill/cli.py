@@ -12,23 +12,41 @@ from . import METHODS
 
 
 def _cmd_gapfill(args: argparse.Namespace) -> int:
+    from .._io import check_output_path
+    from .._native import AcmNumericalError
     from . import fill
-    from .io import read, write_like
+    from .io import check_output, read, sidecar_path, write_like
 
     src = Path(args.input)
-    out = Path(args.output)
-    if out.exists() and not args.overwrite:
-        raise ValueError(f"{out} exists; pass --overwrite to replace it")
+    out = check_output_path(args.output, args.overwrite)
+    if args.std:
+        check_output_path(args.std, args.overwrite, "--std output")
+    for o in [out] + ([Path(args.std)] if args.std else []):
+        if o.suffix.lower() in (".trc", ".csv"):
+            check_output_path(sidecar_path(o), args.overwrite, "sidecar")
     m = read(src)
+    if args.rate is not None:
+        if m.rate is not None and abs(m.rate - args.rate) > 1e-9 * m.rate:
+            raise ValueError(f"{src} says {m.rate:g} Hz; --rate {args.rate:g} disagrees")
+        m.rate = args.rate
+    check_output(out, m.rate)
+    if args.std:
+        check_output(args.std, m.rate)
     opts = {}
     if args.gamma is not None:
         opts["gamma"] = args.gamma
     if args.combine is not None:
         opts["combine"] = args.combine
-    res = fill(m.xyz, method=args.method, full_output=True, empty="skip", **opts)
-    write_like(out, m, res.filled)
-    n_missing = int(np.isnan(m.xyz[:, :, 0]).sum())
-    n_filled = int(res.imputed[:, :, 0].sum())
+    try:
+        res = fill(m.xyz, method=args.method, full_output=True, empty="skip", **opts)
+    except AcmNumericalError as exc:
+        raise ValueError(
+            f"{src}: the {args.method} fill failed numerically ({exc}); try --method spline, "
+            "or check the file for frozen or duplicated markers"
+        ) from None
+    write_like(out, m, res.filled, filled=res.imputed)
+    n_missing = int(np.isnan(m.xyz).any(axis=2).sum())
+    n_filled = int(res.imputed.any(axis=2).sum())
     print(
         f"acm-rs gapfill: {src} ({m.xyz.shape[0]} frames, {m.xyz.shape[1]} markers, "
         f"{n_missing} missing marker-frames) -> {out}: filled {n_filled} with {args.method}"
@@ -94,6 +112,9 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
         "threshold calibrated on probe gaps), residual (border residuals only), none",
     )  # fmt: skip
     g.add_argument("--std", help="also write posterior standard deviations to this file")
+    g.add_argument(
+        "--rate", type=float, help="frame rate (Hz), needed for a TRC/C3D output of a CSV input"
+    )
     g.add_argument("--overwrite", action="store_true", help="replace an existing output")
     g.set_defaults(func=_cmd_gapfill)
     e = sub.add_parser("gapfill-eval", help="score gap-filling methods on a complete sequence")
