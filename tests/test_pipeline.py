@@ -57,13 +57,25 @@ def test_run_all_tracks_exports_plots_and_resumes(project, capsys):
         assert (root / name / "acm-rs" / "pose.nwb").is_file()
         assert (root / name / "acm-rs" / "pose.c3d").is_file()
         assert (root / name / "acm-rs" / "plots" / "joint_traces.png").is_file()
-    assert (root / "skeleton.toml").is_file()  # no manual labels: the generic model
+    # no manual labels: nothing learned, so no skeleton.toml, and track says so loudly
+    assert not (root / "skeleton.toml").exists()
+    assert "no manual labels" in out and "tracking with the generic" in out
     logs = sorted((root / "logs").glob("acm-rs-*.log"))
     assert logs and "track s1" in logs[-1].read_text()
-    before = (root / "s1" / "acm-rs" / "pose.npz").stat().st_mtime_ns
+    pose = root / "s1" / "acm-rs" / "pose.npz"
+    before = pose.stat().st_mtime_ns
     assert main(["run-all", str(root), "--steps", "track,export"]) == 1
-    assert "exists, skipped" in capsys.readouterr().out
-    assert (root / "s1" / "acm-rs" / "pose.npz").stat().st_mtime_ns == before
+    out = capsys.readouterr().out
+    assert "is up to date (same inputs, settings, version), skipped" in out
+    assert pose.stat().st_mtime_ns == before
+    # a changed setting redoes track, and the new pose.npz (new run id) redoes export
+    cfg = root / "config.toml"
+    cfg.write_text(cfg.read_text().replace("pcutoff = 0.9", "pcutoff = 0.8"))
+    assert main(["run-all", str(root), "--steps", "track,export"]) == 1
+    out = capsys.readouterr().out
+    assert "redoing" in out and "settings changed: tracking" in out
+    assert "input(s) changed: pose" in out
+    assert pose.stat().st_mtime_ns != before
 
 
 def test_unknown_step_and_missing_calibration(project, tmp_path):
@@ -99,7 +111,7 @@ def test_step_commands_work_on_a_project_folder(project, capsys):
     assert main(["export", "--project", str(root), "--overwrite-step"]) == 1
     assert csv.stat().st_mtime_ns != before
     assert main(["track", "--project", str(root)]) == 1
-    assert "exists, skipped" in capsys.readouterr().out
+    assert "is up to date (same inputs, settings, version), skipped" in capsys.readouterr().out
     assert main(["learn", "--calibration", "c.toml"]) == 1
     assert "needs --labels, --output (or --project DIR" in capsys.readouterr().err
     assert main(["calibrate", "--board", "b.toml", "-o", "c.toml"]) == 1

@@ -1,8 +1,11 @@
 """The project workflow: calibrate -> learn -> track -> export -> plot, step by step.
 
 Each step reads what the previous one wrote in the project folder (layout in
-``docs/project.md``), skips its work when its output exists (unless ``overwrite``), writes
-atomically and logs to ``<project>/logs/acm-rs-<time>.log``:
+``docs/project.md``), writes atomically and logs to ``<project>/logs/acm-rs-<time>.log``. A
+finished step leaves a record of what it was made from (:mod:`acm_rs._provenance`: digests of
+its inputs, its settings, the package version); the next run skips it only while that record
+still matches and says why it skips or redoes it. A re-made output changes the record of the
+steps after it, so they are redone too; an interrupted step is never taken as done:
 
 =============  ==================================================  ===========================
 step           input                                               output
@@ -26,6 +29,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from . import _provenance as prov
 from .project import ProjectConfig, Session, find_sessions, load_config
 
 __all__ = [
@@ -71,10 +75,24 @@ def _say(msg: str) -> None:
     log.info(msg)
 
 
-def _skip(path: Path, overwrite: bool, what: str) -> bool:
-    if path.exists() and not overwrite:
-        _say(f"{what}: {path} exists, skipped (--overwrite to redo)")
+def _skip(path: Path, overwrite: bool, what: str, fresh: dict) -> bool:
+    """Whether the step that makes ``path`` can be skipped; says why it skips or redoes."""
+    if overwrite:
+        if path.exists():
+            _say(f"{what}: --overwrite: redoing {path}")
+        return False
+    why = prov.stale(path, fresh)
+    if why is None:
+        if prov.read_record(path) is None:
+            _say(
+                f"{what}: {path} exists and was not made by this workflow (no record), kept "
+                "(--overwrite to redo)"
+            )
+        else:
+            _say(f"{what}: {path} is up to date (same inputs, settings, version), skipped")
         return True
+    if path.exists():
+        _say(f"{what}: redoing {path}: {why}")
     return False
 
 
@@ -95,9 +113,10 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
     from .project import VIDEO_SUFFIXES, _camera_of
 
     out = _calibration_path(config)
-    if _skip(out, overwrite, "calibrate"):
-        return out
     folder = config.root / "calibration"
+    if out.exists() and not folder.is_dir() and not overwrite:
+        _say(f"calibrate: {out} exists and there is no calibration/ folder, kept")
+        return out
     if not folder.is_dir():
         raise FileNotFoundError(
             f"{folder}: no calibration folder; put one board video (or image folder) per camera "
@@ -111,6 +130,13 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
             if cam is not None:
                 sources[cam] = p
     names = list(config.cameras["names"]) or sorted(sources)
+    fresh = prov.fresh_record(
+        "calibrate",
+        {f"board:{n}": sources.get(n) for n in names},
+        {"board": config.board(), "cameras": names},
+    )
+    if _skip(out, overwrite, "calibrate", fresh):
+        return out
     missing = [n for n in names if n not in sources]
     if missing or not names:
         raise ValueError(
@@ -125,6 +151,7 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
     res = calibrate(det.corners, spec.board_points, det.image_sizes, camera_names=names)
     res.save(out)
     res.save_report(out.with_suffix(".report.json"), png=out.with_suffix(".qc.png"))
+    prov.write_record(out, fresh)
     _say(f"calibrate: {len(names)} cameras, RMS {res.rms:.3f} px -> {out}")
     return out
 
@@ -140,6 +167,12 @@ def _load_rig(config: ProjectConfig, session: Session | None = None):
         )
     names = session.cameras if session is not None else (config.cameras["names"] or None)
     return CameraRig.load(path, names=names)
+
+
+def _model_file(config: ProjectConfig) -> Path | None:
+    """The project's model file when ``project.model`` is a path (None for a bundled name)."""
+    local = config.root / config.project["model"]
+    return local if local.is_file() else None
 
 
 def _generic_model(config: ProjectConfig):
@@ -161,15 +194,26 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
     from .project import LABEL_SUFFIXES, _files_by_camera
 
     out = config.root / SKELETON_NAME
-    if _skip(out, overwrite, "learn"):
-        return out
-    generic = _generic_model(config)
     folder = config.root / config.paths["manual_labels"]
     files = _files_by_camera(folder, LABEL_SUFFIXES, config.camera_regex) if folder.is_dir() else {}
     if not files:
-        _say(f"learn: no manual labels in {folder}; using the generic {generic.name} model")
-        generic.save(out)
+        # nothing is learned, so nothing is saved as skeleton.toml: track says it uses the
+        # generic model, and a later run with labels learns.
+        _say(
+            f"learn: WARNING: no manual labels in {folder}; nothing learned, tracking will use "
+            f"the generic {config.project['model']} model (bones off by the animal's size)"
+        )
         return out
+    fresh = prov.fresh_record(
+        "learn",
+        {**{f"labels:{c}": f for c, f in files.items()}, "calibration": _calibration_path(config),
+         "model": _model_file(config)},
+        {"model": config.project["model"], "body_weight": config.project.get("body_weight"),
+         "pcutoff": config.tracking["pcutoff"]},
+    )  # fmt: skip
+    if _skip(out, overwrite, "learn", fresh):
+        return out
+    generic = _generic_model(config)
     rig = _load_rig(config)
     names = [c.name for c in rig]
     missing = [n for n in names if n not in files]
@@ -182,6 +226,7 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
         pcutoff=config.tracking["pcutoff"],
     )  # fmt: skip
     res.skeleton.save(out)
+    prov.write_record(out, fresh)
     _say(f"learn: {labels.points.shape[1]} frames, RMS {res.rms:.2f} px -> {out}")
     for line in res.summary().splitlines():
         if "WARNING" in line or "note:" in line:
@@ -203,15 +248,31 @@ def step_track(
 
     folder = _session_output(session, out)
     path = folder / POSE_NAME
-    if _skip(path, overwrite, f"track {session.name}"):
-        return path
     if not session.labels:
         raise FileNotFoundError(
             f"{session.path / config.paths['labels']}: no DeepLabCut predictions for this session"
         )
-    rig = _load_rig(config, session)
     skel_path = config.root / SKELETON_NAME
-    skeleton = Skeleton.load(skel_path) if skel_path.is_file() else _generic_model(config)
+    learned = skel_path.is_file()
+    fresh = prov.fresh_record(
+        f"track {session.name}",
+        {**{f"labels:{c}": session.labels.get(c) for c in session.cameras},
+         "calibration": session.calibration, "skeleton": skel_path if learned else None,
+         "model": None if learned else _model_file(config)},
+        {"tracking": config.tracking, "em": config.em, "cameras": list(session.cameras),
+         "model": None if learned else config.project["model"]},
+    )  # fmt: skip
+    if _skip(path, overwrite, f"track {session.name}", fresh):
+        return path
+    rig = _load_rig(config, session)
+    if learned:
+        skeleton = Skeleton.load(skel_path)
+    else:
+        skeleton = _generic_model(config)
+        _say(
+            f"track {session.name}: WARNING: no learned {skel_path}; tracking with the generic "
+            f"{skeleton.name} model (run the learn step with manual labels for accurate bones)"
+        )
     ls = read_labels([session.labels[c] for c in session.cameras])
     dt = int(config.tracking["dt"])
     lik = ls.likelihood[:, ::dt] if ls.likelihood is not None else None
@@ -220,10 +281,25 @@ def step_track(
         max_iter=config.em["max_iter"], tol=config.em["tol"], marker_names=ls.bodyparts,
     )  # fmt: skip
     res.info["frames"] = ls.frames[::dt]
+    res.info["skeleton"] = "learned" if learned else f"generic {skeleton.name}"
     folder.mkdir(parents=True, exist_ok=True)
     res.save(path)
+    interrupted = bool(res.info.get("interrupted"))
+    prov.write_record(path, fresh, interrupted=interrupted)
+    if interrupted:
+        _say(f"track {session.name}: interrupted (Ctrl-C); {path} is marked unfinished")
+        raise KeyboardInterrupt
     _say(f"track {session.name}: {res.summary().splitlines()[0]} -> {path}")
     return path
+
+
+def _check_finished(pose: Path, what: str) -> None:
+    """Refuse to work from a pose file of an interrupted (or missing) track step."""
+    if not pose.is_file():
+        raise FileNotFoundError(f"{what}: no {pose}; run the track step first")
+    rec = prov.read_record(pose)
+    if rec is not None and rec.get("interrupted"):
+        raise ValueError(f"{what}: {pose} is from an interrupted track step; run track again")
 
 
 def step_export(
@@ -235,11 +311,13 @@ def step_export(
 
     folder = _session_output(session, out)
     csv = folder / "pose_3d.csv"
-    if _skip(csv, overwrite, f"export {session.name}"):
+    fps = config.tracking.get("fps")
+    fresh = prov.fresh_record(f"export {session.name}", {"pose": folder / POSE_NAME}, {"fps": fps})
+    _check_finished(folder / POSE_NAME, f"export {session.name}")
+    if _skip(csv, overwrite, f"export {session.name}", fresh):
         return [csv]
     res = PoseResult.load(folder / POSE_NAME)
     files = export.to_anipose_csv(res, csv)
-    fps = config.tracking.get("fps")
     if fps:
         files.append(
             export.to_nwb(
@@ -252,6 +330,7 @@ def step_export(
         files.append(export.to_c3d(res, folder / "pose.c3d", fps, joints=True))
     else:
         _say(f"export {session.name}: tracking.fps not set; NWB and C3D skipped")
+    prov.write_record(csv, fresh)
     _say(f"export {session.name}: {', '.join(f.name for f in files)}")
     return files
 
@@ -264,9 +343,16 @@ def step_plot(
     from .tracking import PoseResult
 
     folder = _session_output(session, out) / "plots"
-    if _skip(folder, overwrite, f"plot {session.name}"):
+    pose = _session_output(session, out) / POSE_NAME
+    fresh = prov.fresh_record(
+        f"plot {session.name}",
+        {"pose": pose, **{f"video:{c}": v for c, v in session.videos.items()}},
+        {"fps": config.tracking.get("fps"), "dt": config.tracking["dt"]},
+    )
+    _check_finished(pose, f"plot {session.name}")
+    if _skip(folder, overwrite, f"plot {session.name}", fresh):
         return []
-    res = PoseResult.load(_session_output(session, out) / POSE_NAME)
+    res = PoseResult.load(pose)
     files = plot_all(res, folder, frame_rate=config.tracking.get("fps"))
     _say(f"plot {session.name}: {len(files)} figures in {folder}")
     if session.videos and all(c in session.videos for c in session.cameras):
@@ -282,6 +368,7 @@ def step_plot(
             _say(f"plot {session.name}: overlay video {folder / 'overlay.mp4'}")
         except ValueError as exc:  # e.g. videos longer than the tracked range
             _say(f"plot {session.name}: no overlay video ({exc})")
+    prov.write_record(folder, fresh)
     return files
 
 
@@ -314,6 +401,10 @@ def run_all(
                 if "plot" in steps:
                     step_plot(config, session, overwrite)
                 status[session.name] = "ok"
+            except KeyboardInterrupt:
+                status[session.name] = "interrupted"
+                _say(f"acm-rs: session {session.name} interrupted; it is not done")
+                raise
             except (ValueError, OSError, ArithmeticError) as exc:
                 status[session.name] = f"{type(exc).__name__}: {exc}"
                 log.exception("session %s failed", session.name)
