@@ -392,6 +392,14 @@ def _check_size(size: tuple, matrix) -> None:
     if not (w > 0 and h > 0):
         raise ValueError(f"size must be [width, height] > 0 px, got {list(size)}")
     if 0 <= cx <= w and 0 <= cy <= h:
+        # inside, but far off-centre where the swapped size would centre it: swapped
+        off = max(abs(cx - w / 2) / w, abs(cy - h / 2) / h)
+        off_swapped = max(abs(cx - h / 2) / h, abs(cy - w / 2) / w)
+        if off > 0.08 and off_swapped < off / 3:
+            raise ValueError(
+                f"size {list(size)} looks swapped: the principal point ({cx:g}, {cy:g}) is the "
+                f"centre of a {h:g} x {w:g} image; anipose stores size = [width, height]"
+            )
         return
     if 0 <= cx <= h and 0 <= cy <= w:
         raise ValueError(

@@ -54,7 +54,14 @@ def _frame_number(label: object, fallback: int) -> int:
 def _read_csv(path: Path):
     import pandas as pd
 
-    raw = pd.read_csv(path, header=None, nrows=5, dtype=str, keep_default_na=False)
+    try:
+        raw = pd.read_csv(path, header=None, nrows=5, dtype=str, keep_default_na=False)
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
+    except pd.errors.ParserError as exc:
+        raise ValueError(f"{path}: not a DeepLabCut CSV ({exc})") from None
+    except pd.errors.EmptyDataError:
+        raise ValueError(f"{path}: empty file, not a DeepLabCut CSV") from None
     first = [str(v).strip() for v in raw.iloc[:, 0]]
     n_header = 4 if len(first) > 1 and first[1] == "individuals" else 3
     if len(raw) < n_header or first[0] != "scorer":

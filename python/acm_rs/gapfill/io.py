@@ -368,7 +368,7 @@ def read_trc(path: str | os.PathLike[str]) -> Markers:
     """Read a TRC file (5 header lines, ``Frame#``, ``Time``, x y z per marker).
 
     Empty fields are missing values (NaN). A file with fewer (or more) data rows than its
-    NumFrames, or whose last line is cut, is refused.
+    NumFrames, or whose last line has no line end (a cut file), is refused.
 
     Parameters
     ----------
@@ -401,10 +401,10 @@ def read_trc(path: str | os.PathLike[str]) -> Markers:
         f = line.split("\t")
         if len(f) > d + 2:
             raise ValueError(f"{p}: line {n} has {len(f)} fields, expected <= {d + 2}")
-        if n == last and not text.endswith(("\n", "\r")) and len(f) < d + 2:
+        if n == last and not text.endswith(("\n", "\r")):
             raise ValueError(
-                f"{p}: the last line ({n}) is cut ({len(f)} of {d + 2} fields, no line end): "
-                "the file is incomplete"
+                f"{p}: the last line ({n}) has no line end ({len(f)} of {d + 2} fields): the "
+                "file may be cut; if it is complete, end it with a line break"
             )
         f += [""] * (d + 2 - len(f))
         try:
@@ -457,9 +457,8 @@ def _write_trc(path: Path, m: Markers, xyz: np.ndarray) -> None:
             "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\t"
             "OrigDataStartFrame\tOrigNumFrames\n"
         )
-        fh.write(
-            f"{rate:g}\t{rate:g}\t{n_frames}\t{n_markers}\t{m.units}\t{rate:g}\t1\t{n_frames}\n"
-        )
+        r = f"{rate:.15g}"  # all the digits of the rate (``:g`` keeps only 6)
+        fh.write(f"{r}\t{r}\t{n_frames}\t{n_markers}\t{m.units}\t{r}\t1\t{n_frames}\n")
         fh.write("Frame#\tTime\t" + "\t\t\t".join(m.labels) + "\t\t\n")
         fh.write(
             "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(n_markers)) + "\n"
@@ -475,7 +474,7 @@ def read_csv(path: str | os.PathLike[str]) -> Markers:
     A first line with non-numeric fields is a header (labels taken from ``<name>_x`` columns or
     the fields themselves); empty fields and ``NaN`` are missing. Rate and units come from the
     sidecar ``<file>.acm.json`` when there is one (``rate`` is None otherwise). Rows of
-    different widths and a cut last line are refused.
+    different widths and a last line without a line end (a cut file) are refused.
 
     Parameters
     ----------
@@ -509,8 +508,14 @@ def read_csv(path: str | os.PathLike[str]) -> Markers:
         raise ValueError(f"{p}: no data rows after the header")
     width = len(header) if header else len(numbered[0][1].split(","))
     rows = []
+    ends = raw.endswith(("\n", "\r"))
     for n, line in numbered:
         f = line.split(",")
+        if n == numbered[-1][0] and not ends and len(f) == width:
+            raise ValueError(
+                f"{p}: the last line ({n}) has no line end: the file may be cut; if it is "
+                "complete, end it with a line break"
+            )
         if len(f) != width:
             cut = n == numbered[-1][0] and not raw.endswith(("\n", "\r"))
             raise ValueError(
@@ -536,7 +541,7 @@ def read_csv(path: str | os.PathLike[str]) -> Markers:
             labels = list(meta["labels"])
         else:
             raise ValueError(f"{sidecar_path(p)} names {meta.get('labels')}, {p} {labels}")
-        rate = meta.get("rate")
+        rate = None if meta.get("rate") is None else float(meta["rate"])
         units = meta.get("units") or "mm"
     filled = _sidecar_filled(meta, labels, len(rows))
     return Markers(xyz, labels, rate, units, {"csv": {"header": header}}, filled)

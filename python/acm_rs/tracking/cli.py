@@ -79,7 +79,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     res.info["frames"] = ls.frames[sel]
     if res.info.get("interrupted"):
         # marked in the file (info["interrupted"]); no exports or plots of a partial result
-        path = res.save(out.with_name(out.name + ".interrupted"))[0]
+        path = res.save(out.with_name(out.name + "_interrupted"))[0]
         print(
             f"acm-rs track: interrupted (Ctrl-C); the unfinished result is in {path} "
             "(marked interrupted); nothing else written",
