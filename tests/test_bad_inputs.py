@@ -23,7 +23,7 @@ import pytest
 
 import acm_rs
 from acm_rs import _provenance as prov
-from acm_rs import models
+from acm_rs import _toml, models
 from acm_rs.calibration import calibrate
 from acm_rs.camera import CameraRig
 from acm_rs.cli import main
@@ -150,6 +150,12 @@ CASES = [
     ("c3d-garbage", lambda w, t: read_c3d(text(t, "g.c3d", b"not a c3d" * 100)),
      ValueError, [r"g\.c3d", "C3D"]),
     ("c3d-empty", lambda w, t: read_c3d(text(t, "e.c3d", b"")), ValueError, [r"e\.c3d"]),
+    ("c3d-parameter-link-past-section", lambda w, t: read_c3d(_patch(w["d"] / "good.c3d", t / "l.c3d", 523, b"\xff\x7f")),
+     ValueError, [r"l\.c3d", "damaged C3D parameter section", "link"]),
+    ("c3d-parameter-of-no-group", lambda w, t: read_c3d(_patch(w["d"] / "good.c3d", t / "o.c3d", 527, b"\x78")),
+     ValueError, ["damaged C3D parameter section", "group 120, which does not exist"]),
+    ("c3d-parameter-type", lambda w, t: read_c3d(_patch(w["d"] / "good.c3d", t / "y.c3d", 534, b"\x03")),
+     ValueError, ["damaged C3D parameter section", "type 3"]),
     ("c3d-missing", lambda w, t: read_c3d(t / "none.c3d"), ValueError, ["not found", "none.c3d"]),
     # ---- TRC
     ("trc-cut-mid-line", lambda w, t: read_trc(cut(w["d"] / "good.trc", t / "a.trc", 0.5)),
@@ -315,6 +321,14 @@ CASES = [
 ]  # fmt: skip
 
 
+def _patch(src: Path, dst: Path, at: int, new: bytes) -> Path:
+    """A copy of ``src`` with the bytes at ``at`` replaced by ``new``."""
+    b = bytearray(src.read_bytes())
+    b[at : at + len(new)] = new
+    dst.write_bytes(bytes(b))
+    return dst
+
+
 def _flip(src: Path, dst: Path) -> Path:
     """A copy with one byte of the first member's compressed data changed (CRC mismatch)."""
     b = bytearray(src.read_bytes())
@@ -404,8 +418,11 @@ CLI_CASES = [
      ["p.npz", "damaged or incomplete"]),
     ("learn-duplicate-joint", lambda w, t: [
         "learn", "--calibration", str(w["d"] / "calibration.toml"), "--labels", *map(str, w["dlc"]),
-        "--model", str(text(t, "d.toml", __import__("acm_rs")._toml.dumps(_dup(w["sk"], "joints")))),
+        "--model", str(text(t, "d.toml", _toml.dumps(_dup(w["sk"], "joints")))),
         "-o", str(t / "l.toml")], 1, ["repeats the name"]),
+    ("learn-output-exists", lambda w, t: [
+        "learn", "--calibration", str(w["d"] / "calibration.toml"), "--labels", *map(str, w["dlc"]),
+        "-o", str(text(t, "l.toml", "x"))], 1, ["l.toml exists", "--overwrite"]),
     ("track-binary-calibration", lambda w, t: [
         "track", "--calibration", str(text(t, "c.toml", b"\x00\xff\xfe" * 30)), "--dlc", *map(str, w["dlc"]),
         "-o", str(t / "s")], 1, ["c.toml", "not a text file"]),

@@ -111,3 +111,20 @@ def test_pose_npz_truncated_or_corrupted_is_refused_or_identical(tmp_path, frac,
     except ValueError:
         return
     np.testing.assert_array_equal(got["joints"], full["joints"])
+
+
+@_settings
+@given(pos=st.integers(0, 1535), byte=st.integers(0, 255))
+def test_a_corrupted_c3d_header_or_parameter_byte_never_crashes(tmp_path, pos, byte):
+    # ezc3d crashes the process on some damaged parameter sections; read_c3d checks the
+    # header, the section links, types, sizes and group ids before handing the file over
+    X = np.arange(30.0).reshape(5, 2, 3)
+    write(tmp_path / "c.c3d", X, ["a", "b"], 100.0)
+    b = bytearray((tmp_path / "c.c3d").read_bytes())
+    b[pos] = byte
+    (tmp_path / "bad.c3d").write_bytes(bytes(b))
+    try:
+        m = read(tmp_path / "bad.c3d")
+    except ValueError:
+        return
+    assert m.xyz.ndim == 3 and m.xyz.shape[2] == 3

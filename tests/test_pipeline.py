@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -116,3 +118,40 @@ def test_step_commands_work_on_a_project_folder(project, capsys):
     assert "needs --labels, --output (or --project DIR" in capsys.readouterr().err
     assert main(["calibrate", "--board", "b.toml", "-o", "c.toml"]) == 1
     assert "needs --videos or --images" in capsys.readouterr().err
+
+
+def test_batch_without_a_learned_skeleton_says_so(project, capsys):
+    root, _ = project
+    assert not (root / "skeleton.toml").exists()
+    assert main(["batch", str(root), "--sessions", "s2", "--workers", "1"]) == 0
+    err = capsys.readouterr()
+    assert "WARNING: no learned skeleton" in err.err and "GENERIC model" in err.out
+
+
+def test_interrupted_track_is_not_done_and_is_redone(project, capsys, monkeypatch):
+    # last in the file: it re-tracks the shared project
+    import acm_rs.tracking as tracking
+
+    root, _ = project
+    real = tracking.track
+
+    def stopped(*a, **k):
+        res = real(*a, **k)
+        res.info["interrupted"] = True  # as after Ctrl-C during EM
+        return res
+
+    monkeypatch.setattr(tracking, "track", stopped)
+    assert main(["run-all", str(root), "--steps", "track,export", "--overwrite"]) == 130
+    out = capsys.readouterr().out
+    assert "session s1 interrupted; it is not done" in out
+    pose = root / "s1" / "acm-rs" / "pose.npz"
+    assert json.loads((root / "s1" / "acm-rs" / "pose.npz.step.json").read_text())["interrupted"]
+    monkeypatch.setattr(tracking, "track", real)
+    # export refuses the interrupted pose; track redoes it and says why
+    assert acm_rs.pipeline.run_all(root, steps=("export",))["s1"].startswith("ValueError")
+    before = pose.stat().st_mtime_ns
+    acm_rs.pipeline.run_all(root, steps=("track",))
+    assert "redoing" in capsys.readouterr().out and pose.stat().st_mtime_ns != before
+    assert not json.loads((root / "s1" / "acm-rs" / "pose.npz.step.json").read_text())[
+        "interrupted"
+    ]

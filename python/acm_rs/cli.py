@@ -63,12 +63,16 @@ def _cmd_learn(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from ._io import check_output_path
     from .camera import CameraRig
     from .dlc import read_labels
     from .learning import learn_skeleton
     from .models import load_name_or_file
     from .plotting import save_figure
 
+    prefix = Path(args.output).with_suffix("")
+    for f in (prefix.with_suffix(".toml"), prefix.with_name(prefix.name + "_fit.npz")):
+        check_output_path(f, args.overwrite)  # before the work (error and overwrite policy)
     rig = CameraRig.load(args.calibration, names=args.camera_names)
     if len(args.labels) != len(rig):
         raise ValueError(
@@ -144,6 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("--no-symmetry", action="store_true", help="do not enforce left/right symmetry")
     lp.add_argument("-o", "--output", help="learned skeleton TOML to write")
     lp.add_argument("--plots", help="folder for the reprojection and skeleton figures")
+    lp.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_project_option(lp, "learn")
     lp.set_defaults(
         func=lambda a: project_step_or(

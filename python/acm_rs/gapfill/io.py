@@ -160,6 +160,90 @@ def _param(c, group: str, name: str):
         return None
 
 
+def _c3d_check_sections(p: Path) -> None:
+    """Refuse a file too short for the header, parameter section and data start it declares,
+    before ezc3d reads it (ezc3d crashes the process on some such files)."""
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        head = fh.read(512)
+        if len(head) < 512 or head[1] != 0x50 or head[0] < 2:
+            raise ValueError(
+                f"{p}: not a C3D file, or cut inside its 512-byte header ({size} bytes; a C3D "
+                "starts with the parameter block number and 0x50)"
+            )
+        fh.seek((head[0] - 1) * 512)
+        params = fh.read(4)
+    if len(params) < 4:
+        raise ValueError(f"{p}: incomplete C3D file: cut before its parameter section")
+    end = (head[0] - 1 + params[2]) * 512
+    order = ">u2" if params[3] == 86 else "<u2"
+    data_start = int(np.frombuffer(head[16:18], dtype=order)[0])
+    need = max(end, (data_start - 1) * 512)
+    if size < need:
+        raise ValueError(
+            f"{p}: incomplete C3D file: its header and parameters need {need} bytes before the "
+            f"data, the file has {size}; the file was cut (copy or download it again)"
+        )
+    with open(p, "rb") as fh:
+        fh.seek((head[0] - 1) * 512)
+        section = fh.read(params[2] * 512)
+    _c3d_check_parameters(p, section, "big" if params[3] == 86 else "little")
+
+
+def _c3d_check_parameters(p: Path, sec: bytes, order: str) -> None:
+    """Walk the parameter records of a C3D (name, id, offset to the next record, type, dims,
+    data, description) and refuse one that points or reaches past its section."""
+
+    def bad(at: int, what: str) -> ValueError:
+        return ValueError(
+            f"{p}: damaged C3D parameter section ({what} at byte {at} of the section); the "
+            "file is corrupt"
+        )
+
+    pos, n = 4, len(sec)
+    groups: dict[int, str] = {}
+    used: dict[int, int] = {}
+    while pos + 2 <= n:
+        n_chars = abs(int.from_bytes(sec[pos : pos + 1], "little", signed=True))
+        if n_chars == 0:
+            break
+        ident = int.from_bytes(sec[pos + 1 : pos + 2], "little", signed=True)
+        body = pos + 2 + n_chars
+        if ident == 0 or body + 2 > n:
+            raise bad(pos, "a record without a valid id or name")
+        step = int.from_bytes(sec[body : body + 2], order, signed=True)
+        q = body + 2
+        name = bytes(sec[pos + 2 : body]).upper()
+        if ident < 0:
+            if -ident in groups or name in groups.values():
+                raise bad(pos, f"a second group {-ident} {name!r}")
+            groups[-ident] = name
+        else:
+            used.setdefault(ident, pos)
+        if ident > 0:  # a parameter: type, dimensions, data
+            if q + 2 > n:
+                raise bad(q, "a parameter cut short")
+            kind = int.from_bytes(sec[q : q + 1], "little", signed=True)
+            n_dims = sec[q + 1]
+            if kind not in (-1, 1, 2, 4) or n_dims > 7 or q + 2 + n_dims > n:
+                raise bad(q, f"a parameter of type {kind} with {n_dims} dimensions")
+            count = int(np.prod(list(sec[q + 2 : q + 2 + n_dims]), dtype=np.int64))
+            q += 2 + n_dims + count * abs(kind)
+        if q + 1 > n or q + 1 + sec[q] > n:
+            raise bad(pos, "a record reaching past the section")
+        if step == 0:
+            break
+        nxt = body + step
+        if q + 1 + sec[q] > nxt:
+            raise bad(pos, "a record longer than its link to the next one")
+        if step < 0 or nxt <= pos or nxt > n:
+            raise bad(pos, f"a link to byte {nxt}")
+        pos = nxt
+    orphans = sorted(set(used) - set(groups))
+    if orphans:
+        raise bad(used[orphans[0]], f"a parameter of group {orphans[0]}, which does not exist")
+
+
 def _c3d_header_frames(p: Path) -> int | None:
     """Frames in the raw C3D header (words 4 and 5: first and last frame), None if saturated
     (65535) or unreadable. ezc3d shortens its copy of the header to the data it found, so a
@@ -212,8 +296,8 @@ def _c3d_layout(c, p: Path) -> tuple[int, int, int, float]:
         arate = float(_param(c, "ANALOG", "RATE")[0])
         prate = float(_param(c, "POINT", "RATE")[0])
         n_analog *= int(round(arate / prate)) if prate > 0 else 0
-    if start is None or not start.size:
-        raise ValueError(f"{p}: C3D without POINT:DATA_START")
+    if start is None or not start.size or int(start[0]) < 2 or n_points < 0 or n_analog < 0:
+        raise ValueError(f"{p}: damaged C3D file: POINT:DATA_START, POINT:USED or ANALOG:USED")
     return (int(start[0]) - 1) * 512, 4 * n_points + n_analog, 4 if scale < 0 else 2, scale
 
 
@@ -266,6 +350,7 @@ def read_c3d(path: str | os.PathLike[str]) -> Markers:
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"C3D file not found: {p}")
+    _c3d_check_sections(p)
     try:
         c = ezc3d.c3d(str(p))
         pts = np.asarray(c["data"]["points"], dtype=np.float64)
@@ -284,7 +369,12 @@ def read_c3d(path: str | os.PathLike[str]) -> Markers:
     meta = c["data"].get("meta_points", {})
     res = meta.get("residuals") if isinstance(meta, dict) else None
     if declared > pts.shape[2]:
-        xyz, residual = _c3d_points_raw(p, c, declared)
+        try:
+            xyz, residual = _c3d_points_raw(p, c, declared)
+        except ValueError:
+            raise
+        except Exception as exc:  # a damaged layout (negative offset, odd sizes)
+            raise ValueError(f"{p}: damaged C3D file: {type(exc).__name__}: {exc}") from None
     else:
         if pts.shape[2] != declared:
             raise ValueError(
