@@ -141,6 +141,14 @@ fn binary_matches_in_process_smoothing() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("broken.npz"));
+    // the result exists now: a second run refuses before any work unless --overwrite
+    let again = Command::new(env!("CARGO_BIN_EXE_acm-smooth"))
+        .args(["-q", "--no-cov"])
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert_eq!(again.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&again.stderr).contains("pass --overwrite"));
     let res = read_npz(
         std::fs::File::open(dir.join("session.smoothed.npz")).unwrap(),
         "result",

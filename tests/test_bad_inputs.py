@@ -321,6 +321,12 @@ CASES = [
 ]  # fmt: skip
 
 
+def _folder_with_file(folder: Path, name: str = "old.png") -> Path:
+    folder.mkdir()
+    (folder / name).write_text("x")
+    return folder
+
+
 def _patch(src: Path, dst: Path, at: int, new: bytes) -> Path:
     """A copy of ``src`` with the bytes at ``at`` replaced by ``new``."""
     b = bytearray(src.read_bytes())
@@ -420,6 +426,14 @@ CLI_CASES = [
         "learn", "--calibration", str(w["d"] / "calibration.toml"), "--labels", *map(str, w["dlc"]),
         "--model", str(text(t, "d.toml", _toml.dumps(_dup(w["sk"], "joints")))),
         "-o", str(t / "l.toml")], 1, ["repeats the name"]),
+    ("model-save-exists", lambda w, t: ["model", "rat", "--save", str(text(t, "m.toml", "x"))], 1,
+     ["m.toml exists", "--overwrite"]),
+    ("plot-output-has-files", lambda w, t: [
+        "plot", str(w["d"] / "pose.npz"), "-o", str(_folder_with_file(t / "figs2"))], 1,
+     ["holds files already", "--overwrite"]),
+    ("gapfill-eval-results-exist", lambda w, t: [
+        "gapfill-eval", str(w["d"] / "good.trc"), "--out", str(_folder_with_file(t / "ev", "gapfill_eval.json"))], 1,
+     ["gapfill_eval.json exists", "--overwrite"]),
     ("learn-output-exists", lambda w, t: [
         "learn", "--calibration", str(w["d"] / "calibration.toml"), "--labels", *map(str, w["dlc"]),
         "-o", str(text(t, "l.toml", "x"))], 1, ["l.toml exists", "--overwrite"]),
@@ -561,6 +575,20 @@ def test_interrupted_track_exits_130_marks_the_result_and_exports_nothing(
     assert not out.with_suffix(".npz").exists() and not (tmp_path / "s_3d.csv").exists()
     res = acm_rs.PoseResult.load(tmp_path / "s_interrupted.npz")
     assert res.info["interrupted"] is True
+
+
+def test_a_bug_is_reported_as_an_internal_error_without_a_traceback(
+    w, tmp_path, monkeypatch, capsys
+):
+    import acm_rs.gapfill as gf
+
+    def bug(*a, **k):
+        raise KeyError("oops")
+
+    monkeypatch.setattr(gf, "fill", bug)
+    assert main(_g(w, tmp_path, "-o", str(tmp_path / "o.trc"))) == 1
+    err = capsys.readouterr().err
+    assert "internal error: KeyError" in err and "--debug" in err and "Traceback" not in err
 
 
 def test_numerical_error_in_gapfill_is_one_line_and_debug_shows_the_traceback(

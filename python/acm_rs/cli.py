@@ -47,6 +47,9 @@ def _cmd_model(args: argparse.Namespace) -> int:
     print(f"  units: {sk.units}; state dimension: {sk.state_map().n_state}")
     print(f"  bones: {', '.join(sk.bone_names)}")
     if args.save:
+        from ._io import check_output_path
+
+        check_output_path(args.save, args.overwrite)
         sk.save(args.save)
         print(f"  wrote {args.save}")
     if args.plot:
@@ -130,6 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("name", nargs="?", help="model name (rat, mouse)")
     m.add_argument("--save", help="write the model as a skeleton TOML file")
     m.add_argument("--plot", help="write a PNG of the rest pose")
+    m.add_argument("--overwrite", action="store_true", help="replace an existing --save file")
     m.set_defaults(func=_cmd_model)
     lp = sub.add_parser(
         "learn", help="learn bone lengths and marker offsets from labelled frames (sec. 3.2)"
@@ -193,6 +197,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exc()
         kind = "numerical error" if isinstance(exc, ArithmeticError) else "error"
         print(f"acm-rs: {kind}: {exc}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # a bug, not an input problem: say so, traceback on --debug
+        if args.debug:
+            traceback.print_exc()
+        print(
+            f"acm-rs: internal error: {type(exc).__name__}: {exc} (please report it with the "
+            "output of the same command with --debug)",
+            file=sys.stderr,
+        )
         return 1
 
 

@@ -477,8 +477,10 @@ def _cmd_plot(args) -> int:
             for session in find_sessions(config):
                 step_plot(config, session, overwrite=args.overwrite)
         return 0
-    res = PoseResult.load(src)
     out = Path(args.output) if args.output else src.with_name(src.stem + "_plots")
+    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
+        raise ValueError(f"{out} holds files already; pass --overwrite to replace its figures")
+    res = PoseResult.load(src)
     files = plot_all(res, out, pdf=args.pdf, frame_rate=args.rate)
     for f in files:
         print(f"  wrote {f}")
@@ -502,5 +504,5 @@ def add_subcommands(sub) -> None:
     q.add_argument("-o", "--output", help="folder for the figures (default: <input>_plots)")
     q.add_argument("--pdf", action="store_true", help="also write PDF")
     q.add_argument("--rate", type=float, help="frame rate (Hz) for time axes in seconds")
-    q.add_argument("--overwrite", action="store_true", help="redo a project's figures")
+    q.add_argument("--overwrite", action="store_true", help="replace existing figures")
     q.set_defaults(func=_cmd_plot)

@@ -319,6 +319,51 @@ Frame#\tTime\tA\t\t\tB\t\t\n\
             .collect()
     }
 
+    proptest::proptest! {
+        /// Any text: the readers return a table or an error, never panic.
+        #[test]
+        fn arbitrary_text_never_panics(s in "[0-9a-zA-Z.,\t\n\r -]{0,300}") {
+            let _ = read_csv(&s);
+            let _ = read_trc(&s);
+            let _ = read_trc(&format!("PathFileType\t4\nNumFrames\n2\nFrame#\tTime\tA\n\n{s}"));
+        }
+
+        /// A written table cut anywhere reads back whole or not at all (TRC: NumFrames and
+        /// the line end; CSV: the line end, or whole rows only).
+        #[test]
+        fn truncated_tables_are_refused_or_whole(
+            vals in proptest::collection::vec(-1e6f64..1e6, 3..30),
+            frac in 0.0f64..1.0,
+        ) {
+            let t = vals.len() / 3;
+            let x = &vals[..3 * t];
+            let csv = write_csv(Some("a_x,a_y,a_z"), x, 3);
+            let cut = &csv[..(csv.len() as f64 * frac) as usize];
+            if let Ok(c) = read_csv(cut) {
+                proptest::prop_assert!(cut.ends_with('\n'));
+                proptest::prop_assert_eq!(&c.x[..], &x[..c.x.len()]);
+            }
+            let trc = Trc {
+                header: vec![
+                    "PathFileType\t4\t(X/Y/Z)\tp.trc".into(),
+                    "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits".into(),
+                    format!("100\t100\t{t}\t1\tmm"),
+                    "Frame#\tTime\tA\t\t".into(),
+                    "\t\tX1\tY1\tZ1".into(),
+                ],
+                names: vec!["A".into()],
+                frames: (1..=t).map(|i| i.to_string()).collect(),
+                times: (0..t).map(|i| format!("{}", i as f64 / 100.0)).collect(),
+                x: x.to_vec(),
+            };
+            let text = write_trc(&trc, x);
+            let cut = &text[..(text.len() as f64 * frac) as usize];
+            if let Ok(back) = read_trc(cut) {
+                proptest::prop_assert_eq!(&back.x[..], x);
+            }
+        }
+    }
+
     #[test]
     fn truncated_and_corrupted_text_never_panics_or_passes_short() {
         let text = write_trc(

@@ -62,9 +62,13 @@ def _cmd_gapfill(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    from .._io import check_output_path
     from .evaluate import evaluate
     from .io import read
 
+    out = Path(args.out)
+    for name in ("gapfill_eval.json", "gapfill_error_vs_length.png"):
+        check_output_path(out / name, args.overwrite)
     m = read(args.input)
     X = m.xyz
     if not np.isfinite(X).all():
@@ -86,7 +90,6 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     print(res.table())
     for meth, msg in res.failures.items():
         print(f"  {meth} failed: {msg}")
-    out = Path(args.out)
     res.save_json(out / "gapfill_eval.json")
     res.plot(out / "gapfill_error_vs_length.png")
     print(f"  wrote {out / 'gapfill_eval.json'} and {out / 'gapfill_error_vs_length.png'}")
@@ -128,4 +131,5 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     e.add_argument(
         "--print-json", action="store_true", help="also print the scores as JSON on stdout"
     )
+    e.add_argument("--overwrite", action="store_true", help="replace existing results")
     e.set_defaults(func=_cmd_eval)
