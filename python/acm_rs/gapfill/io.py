@@ -34,6 +34,7 @@ __all__ = [
     "read_c3d",
     "read_csv",
     "read_trc",
+    "set_c3d_frame_count",
     "sidecar_path",
     "write",
     "write_like",
@@ -408,6 +409,19 @@ def _set_param(c, group: str, name: str, value) -> None:
         c.add_parameter(group, name, value)
 
 
+def set_c3d_frame_count(c, n_frames: int) -> None:
+    """Record a length over 65535 frames in an ezc3d object the ways C3D readers look for it.
+
+    POINT:FRAMES is a 16-bit count (ezc3d writes 65535); longer recordings also get
+    POINT:LONG_FRAMES (the count, float) and TRIAL:ACTUAL_START_FIELD / ACTUAL_END_FIELD (first
+    and last frame as low and high 16-bit words), which :func:`read_c3d` reads back.
+    """
+    if n_frames > 65535:
+        _set_param(c, "POINT", "LONG_FRAMES", [float(n_frames)])
+        _set_param(c, "TRIAL", "ACTUAL_START_FIELD", [1, 0])
+        _set_param(c, "TRIAL", "ACTUAL_END_FIELD", [n_frames & 0xFFFF, n_frames >> 16])
+
+
 def _write_c3d(path: Path, m: Markers, xyz: np.ndarray, filled: np.ndarray | None) -> None:
     import ezc3d
 
@@ -434,11 +448,7 @@ def _write_c3d(path: Path, m: Markers, xyz: np.ndarray, filled: np.ndarray | Non
         "camera_masks": np.zeros((7, n_markers, n_frames), dtype=bool),
     }
     _set_param(c, "ACM_RS", "FILLED_RESIDUAL", [float(C3D_RESIDUALS["filled"])])
-    if n_frames > 65535:
-        # POINT:FRAMES is a 16-bit count: store the length the ways C3D readers look for it.
-        _set_param(c, "POINT", "LONG_FRAMES", [float(n_frames)])
-        _set_param(c, "TRIAL", "ACTUAL_START_FIELD", [1, 0])
-        _set_param(c, "TRIAL", "ACTUAL_END_FIELD", [n_frames & 0xFFFF, n_frames >> 16])
+    set_c3d_frame_count(c, n_frames)
     # ezc3d writes by path and needs a .c3d suffix: write a temporary .c3d next to the target,
     # then rename it over the target (the same guarantee as atomic_write).
     path.parent.mkdir(parents=True, exist_ok=True)
