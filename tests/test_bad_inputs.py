@@ -647,3 +647,50 @@ def test_labels_of_several_cameras_with_a_cut_file(w, tmp_path):
     paths = [*w["dlc"][:-1], cut(w["dlc"][-1], tmp_path / "last.csv", 0.8)]
     with pytest.raises(ValueError, match=r"last\.csv: line \d+ has"):
         read_labels(paths)
+
+
+# ---- the Rust binary acm-gapfill (skipped unless built: cargo build --release)
+
+BIN_DIR = Path(
+    os.environ.get("ACM_RS_BIN_DIR", Path(__file__).resolve().parents[1] / "target" / "release")
+)
+
+
+@pytest.mark.skipif(not (BIN_DIR / "acm-gapfill").exists(), reason="acm-gapfill not built")
+def test_acm_gapfill_binary_follows_the_same_policy(w, tmp_path):
+    import subprocess
+
+    def run(*args):
+        return subprocess.run(
+            [str(BIN_DIR / "acm-gapfill"), *map(str, args)],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+
+    src = w["d"] / "good.trc"
+    X = w["X"].copy()
+    X[20, 2, 0] = np.nan  # a partial point
+    write(tmp_path / "p.trc", X, w["labels"], 100.0)
+    cutf = cut(src, tmp_path / "cut.trc", 0.5)
+    r = run(cutf, tmp_path / "o.csv")
+    assert r.returncode == 1 and "cut.trc" in r.stderr and "no line end" in r.stderr
+    assert not (tmp_path / "o.csv").exists()
+    r = run(tmp_path / "p.trc", tmp_path / "keep.csv", "--method", "spline")  # TRC in, CSV out
+    assert r.returncode == 0, r.stderr
+    m = read(tmp_path / "keep.csv")  # a real CSV with the labels and the sidecar
+    assert m.labels == w["labels"] and m.rate == 100.0
+    obs = ~np.isnan(X)
+    np.testing.assert_array_equal(m.xyz[obs], X[obs])
+    assert m.filled[20, 2] and m.filled[10:14, 1].all() and m.filled.sum() == 5
+    r = run(tmp_path / "p.trc", tmp_path / "keep.csv")
+    assert r.returncode == 1 and "pass --overwrite" in r.stderr
+    r = run(w["d"] / "plain.csv", tmp_path / "x.trc")
+    assert r.returncode == 1 and "needs a frame rate" in r.stderr
+    assert (tmp_path / "keep.csv").stat().st_mode & 0o777 == 0o666 & ~_umask()
+
+
+def _umask() -> int:
+    old = os.umask(0)
+    os.umask(old)
+    return old
