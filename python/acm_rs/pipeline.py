@@ -259,7 +259,8 @@ def step_track(
         {**{f"labels:{c}": session.labels.get(c) for c in session.cameras},
          "calibration": session.calibration, "skeleton": skel_path if learned else None,
          "model": None if learned else _model_file(config)},
-        {"tracking": config.tracking, "em": config.em, "cameras": list(session.cameras),
+        {"tracking": {k: v for k, v in config.tracking.items() if k != "fps"},  # fps: export
+         "em": config.em, "cameras": list(session.cameras),
          "model": None if learned else config.project["model"]},
     )  # fmt: skip
     if _skip(path, overwrite, f"track {session.name}", fresh):
