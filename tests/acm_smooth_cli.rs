@@ -141,6 +141,14 @@ fn binary_matches_in_process_smoothing() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&out.stderr).contains("broken.npz"));
+    // the result exists now: a second run refuses before any work unless --overwrite
+    let again = Command::new(env!("CARGO_BIN_EXE_acm-smooth"))
+        .args(["-q", "--no-cov"])
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert_eq!(again.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&again.stderr).contains("pass --overwrite"));
     let res = read_npz(
         std::fs::File::open(dir.join("session.smoothed.npz")).unwrap(),
         "result",
@@ -165,4 +173,58 @@ fn binary_matches_in_process_smoothing() {
         summary.mean_reprojection_px
     );
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn bundle_options_out_of_range_are_refused_by_name() {
+    for (key, value, words) in [
+        ("max_iter", 0.0, "whole number >= 1"),
+        ("max_iter", 2.5, "whole number >= 1"),
+        ("tol", -1.0, "> 0"),
+        ("pcutoff", 90.0, "[0, 1]"),
+        ("noise", 0.0, "> 0"),
+        ("gate", -3.0, "NaN (off) or > 0"),
+        ("ll_tol", -1e-3, "NaN (off) or > 0"),
+    ] {
+        let mut a = arrays();
+        a.insert(
+            key.to_string(),
+            Array {
+                shape: vec![],
+                data: vec![value],
+            },
+        );
+        if key == "pcutoff" {
+            let (nc, t, nm) = (a["detections"].shape[0], a["detections"].shape[1], 4);
+            a.insert(
+                "likelihood".into(),
+                Array {
+                    shape: vec![nc, t, nm],
+                    data: vec![1.0; nc * t * nm],
+                },
+            );
+        }
+        let err = match bundle_from_arrays(&a, "b.npz") {
+            Ok(_) => panic!("{key} = {value} was accepted"),
+            Err(e) => e.to_string(),
+        };
+        assert!(
+            err.contains(key) && err.contains(words) && !err.contains("Some("),
+            "{err}"
+        );
+    }
+    // a wrong shape names the expected one without Rust's Option syntax
+    let mut a = arrays();
+    a.insert(
+        "normalization".into(),
+        Array {
+            shape: vec![3],
+            data: vec![1.0; 3],
+        },
+    );
+    let err = bundle_from_arrays(&a, "b.npz").err().unwrap().to_string();
+    assert!(
+        err.contains("expected [4]") && !err.contains("Some("),
+        "{err}"
+    );
 }

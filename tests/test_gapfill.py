@@ -220,14 +220,17 @@ def test_bad_options(seq):
         fill(gapped(seq), combine="best")
 
 
-def test_input_is_not_modified_and_partial_markers_count_as_missing(seq):
+def test_input_is_not_modified_and_partial_markers_keep_observed_coordinates(seq):
     G = gapped(seq)
-    G[5, 2, 1] = np.nan  # one coordinate only: the whole marker is missing in that frame
+    G[5, 2, 1] = np.nan  # one coordinate only: estimated as missing, observed x, z kept
     before = G.copy()
     res = fill(G, full_output=True)
     np.testing.assert_array_equal(G, before)  # NaN-aware: the caller's array is untouched
-    assert res.imputed[5, 2].all() and np.isfinite(res.filled).all()
-    assert res.filled[5, 2, 0] != G[5, 2, 0]  # the observed x of that marker was re-estimated
+    assert res.imputed[5, 2].tolist() == [False, True, False] and np.isfinite(res.filled).all()
+    assert res.filled[5, 2, 0] == G[5, 2, 0] and res.filled[5, 2, 2] == G[5, 2, 2]
+    assert res.std[5, 2, 0] == 0 and res.std[5, 2, 1] > 0
+    obs = ~np.isnan(G)
+    np.testing.assert_array_equal(res.filled[obs], G[obs])  # no observed value changes
 
 
 def test_no_gaps_is_identity(seq):

@@ -76,6 +76,7 @@ LAYERS: dict[str, int] = {
     "acm_rs._io": 0,
     "acm_rs._toml": 0,
     "acm_rs._version": 0,
+    "acm_rs._provenance": 0,
 }
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -57,13 +59,25 @@ def test_run_all_tracks_exports_plots_and_resumes(project, capsys):
         assert (root / name / "acm-rs" / "pose.nwb").is_file()
         assert (root / name / "acm-rs" / "pose.c3d").is_file()
         assert (root / name / "acm-rs" / "plots" / "joint_traces.png").is_file()
-    assert (root / "skeleton.toml").is_file()  # no manual labels: the generic model
+    # no manual labels: nothing learned, so no skeleton.toml, and track says so loudly
+    assert not (root / "skeleton.toml").exists()
+    assert "no manual labels" in out and "tracking with the generic" in out
     logs = sorted((root / "logs").glob("acm-rs-*.log"))
     assert logs and "track s1" in logs[-1].read_text()
-    before = (root / "s1" / "acm-rs" / "pose.npz").stat().st_mtime_ns
+    pose = root / "s1" / "acm-rs" / "pose.npz"
+    before = pose.stat().st_mtime_ns
     assert main(["run-all", str(root), "--steps", "track,export"]) == 1
-    assert "exists, skipped" in capsys.readouterr().out
-    assert (root / "s1" / "acm-rs" / "pose.npz").stat().st_mtime_ns == before
+    out = capsys.readouterr().out
+    assert "is up to date (same inputs, settings, version), skipped" in out
+    assert pose.stat().st_mtime_ns == before
+    # a changed setting redoes track, and the new pose.npz (new run id) redoes export
+    cfg = root / "config.toml"
+    cfg.write_text(cfg.read_text().replace("pcutoff = 0.9", "pcutoff = 0.8"))
+    assert main(["run-all", str(root), "--steps", "track,export"]) == 1
+    out = capsys.readouterr().out
+    assert "redoing" in out and "settings changed: tracking" in out
+    assert "input(s) changed: pose" in out
+    assert pose.stat().st_mtime_ns != before
 
 
 def test_unknown_step_and_missing_calibration(project, tmp_path):
@@ -99,8 +113,45 @@ def test_step_commands_work_on_a_project_folder(project, capsys):
     assert main(["export", "--project", str(root), "--overwrite-step"]) == 1
     assert csv.stat().st_mtime_ns != before
     assert main(["track", "--project", str(root)]) == 1
-    assert "exists, skipped" in capsys.readouterr().out
+    assert "is up to date (same inputs, settings, version), skipped" in capsys.readouterr().out
     assert main(["learn", "--calibration", "c.toml"]) == 1
     assert "needs --labels, --output (or --project DIR" in capsys.readouterr().err
     assert main(["calibrate", "--board", "b.toml", "-o", "c.toml"]) == 1
     assert "needs --videos or --images" in capsys.readouterr().err
+
+
+def test_batch_without_a_learned_skeleton_says_so(project, capsys):
+    root, _ = project
+    assert not (root / "skeleton.toml").exists()
+    assert main(["batch", str(root), "--sessions", "s2", "--workers", "1"]) == 0
+    err = capsys.readouterr()
+    assert "WARNING: no learned skeleton" in err.err and "GENERIC model" in err.out
+
+
+def test_interrupted_track_is_not_done_and_is_redone(project, capsys, monkeypatch):
+    # last in the file: it re-tracks the shared project
+    import acm_rs.tracking as tracking
+
+    root, _ = project
+    real = tracking.track
+
+    def stopped(*a, **k):
+        res = real(*a, **k)
+        res.info["interrupted"] = True  # as after Ctrl-C during EM
+        return res
+
+    monkeypatch.setattr(tracking, "track", stopped)
+    assert main(["run-all", str(root), "--steps", "track,export", "--overwrite"]) == 130
+    out = capsys.readouterr().out
+    assert "session s1 interrupted; it is not done" in out
+    pose = root / "s1" / "acm-rs" / "pose.npz"
+    assert json.loads((root / "s1" / "acm-rs" / "pose.npz.step.json").read_text())["interrupted"]
+    monkeypatch.setattr(tracking, "track", real)
+    # export refuses the interrupted pose; track redoes it and says why
+    assert acm_rs.pipeline.run_all(root, steps=("export",))["s1"].startswith("ValueError")
+    before = pose.stat().st_mtime_ns
+    acm_rs.pipeline.run_all(root, steps=("track",), verbose=True)
+    assert "redoing" in capsys.readouterr().out and pose.stat().st_mtime_ns != before
+    assert not json.loads((root / "s1" / "acm-rs" / "pose.npz.step.json").read_text())[
+        "interrupted"
+    ]

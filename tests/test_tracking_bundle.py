@@ -3,6 +3,7 @@ against the in-process tracker on the same data (and the ``acm-smooth`` binary i
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -15,7 +16,8 @@ from acm_rs import datasets, models
 from acm_rs.demo import demo_rig
 from acm_rs.tracking import read_smoothed, smooth_bundle, write_bundle
 
-BINARY = Path(__file__).resolve().parents[1] / "target" / "release" / "acm-smooth"
+BIN_DIR = os.environ.get("ACM_RS_BIN_DIR", Path(__file__).resolve().parents[1] / "target/release")
+BINARY = Path(BIN_DIR) / "acm-smooth"
 
 
 @pytest.fixture(scope="module")

@@ -15,6 +15,7 @@ import contextlib
 import json
 import os
 import shutil
+import sys
 import time
 import traceback
 import uuid
@@ -331,6 +332,14 @@ def _cmd_batch(args) -> int:
             raise ValueError(f"unknown sessions {unknown}; sessions: {[s.name for s in sessions]}")
         sessions = [s for s in sessions if s.name in wanted]
     print(f"acm-rs batch: {len(sessions)} sessions of {config.root}")
+    generic = not (config.root / "skeleton.toml").is_file()
+    warning = (
+        f"acm-rs batch: WARNING: no learned skeleton ({config.root / 'skeleton.toml'}): every "
+        f"session is tracked with the generic {config.project['model']} model, whose bones "
+        "are not the animal's; run `acm-rs run-all --steps learn` with manual labels first"
+    )
+    if generic:
+        print(warning, file=sys.stderr, flush=True)
     statuses = run(
         sessions,
         client=args.scheduler,
@@ -341,8 +350,10 @@ def _cmd_batch(args) -> int:
         progress=None,
     )
     report = write_report(config.root / f"batch-{time.strftime('%Y%m%d-%H%M%S')}.json", statuses)
-    print(summary(statuses))
+    print(summary(statuses) + (" (GENERIC model, nothing learned)" if generic else ""))
     print(f"  report: {report}")
+    if generic:
+        print(warning, file=sys.stderr)
     return 0 if all(s.ok for s in statuses) else 1
 
 

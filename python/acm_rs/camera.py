@@ -205,6 +205,8 @@ class Camera:
         if missing:
             raise ValueError(f"camera table lacks keys {sorted(missing)}")
         size = tuple(d["size"]) if "size" in d else None
+        if size is not None:
+            _check_size(size, d["matrix"])
         return cls(
             d["matrix"], d["distortions"], d["rotation"], d["translation"], size, d.get("name")
         )
@@ -343,20 +345,28 @@ class CameraRig:
             Invalid TOML, no camera tables, a missing key, or a requested name that is absent.
         """
         p = Path(path)
+        if not p.is_file():
+            raise ValueError(f"calibration file not found: {p}")
         try:
             doc = tomllib.loads(p.read_text(encoding="utf-8"))
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{p}: invalid TOML: {exc}") from None
+        except UnicodeDecodeError as exc:
+            raise ValueError(
+                f"{p}: not a text file (byte {exc.start} is not UTF-8); expected an anipose "
+                "calibration.toml"
+            ) from None
         tables = {
             k: v for k, v in doc.items() if isinstance(v, dict) and re.fullmatch(r"cam_\d+", k)
         }
         if not tables:
             raise ValueError(f"{p}: no [cam_<i>] tables (not an anipose calibration file)")
-        ordered = [tables[k] for k in sorted(tables, key=lambda k: int(k[4:]))]
-        try:
-            cams = [Camera.from_dict(t) for t in ordered]
-        except ValueError as exc:
-            raise ValueError(f"{p}: {exc}") from None
+        cams = []
+        for k in sorted(tables, key=lambda k: int(k[4:])):
+            try:
+                cams.append(Camera.from_dict(tables[k]))
+            except (ValueError, TypeError) as exc:
+                raise ValueError(f"{p}: [{k}]: {exc}") from None
         if names is not None:
             by_name = {c.name: c for c in cams}
             missing = [n for n in names if n not in by_name]
@@ -369,6 +379,37 @@ class CameraRig:
 
     def __repr__(self) -> str:
         return f"CameraRig({len(self)} cameras: {self.names})"
+
+
+def _check_size(size: tuple, matrix) -> None:
+    """Refuse an image ``size`` (width, height) px that does not hold the principal point,
+    naming a swapped (height, width) pair."""
+    try:
+        w, h = (float(v) for v in size)
+        cx, cy = float(np.asarray(matrix, float)[0, 2]), float(np.asarray(matrix, float)[1, 2])
+    except (TypeError, ValueError, IndexError):
+        raise ValueError(f"size must be [width, height] in pixels, got {list(size)}") from None
+    if not (w > 0 and h > 0):
+        raise ValueError(f"size must be [width, height] > 0 px, got {list(size)}")
+    if 0 <= cx <= w and 0 <= cy <= h:
+        # inside, but far off-centre where the swapped size would centre it: swapped
+        off = max(abs(cx - w / 2) / w, abs(cy - h / 2) / h)
+        off_swapped = max(abs(cx - h / 2) / h, abs(cy - w / 2) / w)
+        if off > 0.08 and off_swapped < off / 3:
+            raise ValueError(
+                f"size {list(size)} looks swapped: the principal point ({cx:g}, {cy:g}) is the "
+                f"centre of a {h:g} x {w:g} image; anipose stores size = [width, height]"
+            )
+        return
+    if 0 <= cx <= h and 0 <= cy <= w:
+        raise ValueError(
+            f"size {list(size)} looks swapped: the principal point ({cx:g}, {cy:g}) lies in a "
+            f"{h:g} x {w:g} image; anipose stores size = [width, height]"
+        )
+    raise ValueError(
+        f"the principal point ({cx:g}, {cy:g}) lies outside the {w:g} x {h:g} image (size = "
+        "[width, height]); the matrix or the size is wrong"
+    )
 
 
 def _checked_params(params: np.ndarray) -> np.ndarray:

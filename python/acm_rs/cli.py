@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import traceback
 from collections.abc import Sequence
 
 from ._version import __version__
@@ -46,6 +47,9 @@ def _cmd_model(args: argparse.Namespace) -> int:
     print(f"  units: {sk.units}; state dimension: {sk.state_map().n_state}")
     print(f"  bones: {', '.join(sk.bone_names)}")
     if args.save:
+        from ._io import check_output_path
+
+        check_output_path(args.save, args.overwrite)
         sk.save(args.save)
         print(f"  wrote {args.save}")
     if args.plot:
@@ -62,12 +66,16 @@ def _cmd_learn(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from ._io import check_output_path
     from .dlc import read_labels
     from .learning import learn_skeleton
     from .models import load_name_or_file
     from .plotting import save_figure
     from .project import rig_for_files
 
+    prefix = Path(args.output).with_suffix("")
+    for f in (prefix.with_suffix(".toml"), prefix.with_name(prefix.name + "_fit.npz")):
+        check_output_path(f, args.overwrite)  # before the work (error and overwrite policy)
     rig, table = rig_for_files(args.calibration, args.labels, args.camera_names)
     if table:
         print("acm-rs learn: cameras matched by the names in the files:\n  "
@@ -109,6 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(prog="acm-rs", description=__doc__)
     p.add_argument("--version", action="version", version=f"acm-rs {__version__}")
+    p.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = p.add_subparsers(dest="command", required=True)
     d = sub.add_parser(
         "demo", help="the whole pipeline on a synthetic rat: calibrate, learn, track, export, plots"
@@ -127,6 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("name", nargs="?", help="model name (rat, mouse)")
     m.add_argument("--save", help="write the model as a skeleton TOML file")
     m.add_argument("--plot", help="write a PNG of the rest pose")
+    m.add_argument("--overwrite", action="store_true", help="replace an existing --save file")
     m.set_defaults(func=_cmd_model)
     lp = sub.add_parser(
         "learn", help="learn bone lengths and marker offsets from labelled frames (sec. 3.2)"
@@ -153,6 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("--no-symmetry", action="store_true", help="do not enforce left/right symmetry")
     lp.add_argument("-o", "--output", help="learned skeleton TOML to write")
     lp.add_argument("--plots", help="folder for the reprojection and skeleton figures")
+    lp.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_project_option(lp, "learn")
     lp.set_defaults(
         func=lambda a: project_step_or(
@@ -187,8 +198,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args))
-    except (ValueError, OSError) as exc:
-        print(f"acm-rs: error: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        # docs/architecture.md, error and overwrite policy: Ctrl-C exits 130
+        print("acm-rs: interrupted (Ctrl-C); unfinished outputs were not written", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, ArithmeticError) as exc:
+        # input and numerical problems: one line naming the file and the fix; --debug for more
+        if args.debug:
+            traceback.print_exc()
+        kind = "numerical error" if isinstance(exc, ArithmeticError) else "error"
+        print(f"acm-rs: {kind}: {exc}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # a bug, not an input problem: say so, traceback on --debug
+        if args.debug:
+            traceback.print_exc()
+        print(
+            f"acm-rs: internal error: {type(exc).__name__}: {exc} (please report it with the "
+            "output of the same command with --debug)",
+            file=sys.stderr,
+        )
         return 1
 
 

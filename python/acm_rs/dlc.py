@@ -58,7 +58,14 @@ def _frame_number(label: object, fallback: int) -> int:
 def _read_csv(path: Path):
     import pandas as pd
 
-    raw = pd.read_csv(path, header=None, nrows=5, dtype=str, keep_default_na=False)
+    try:
+        raw = pd.read_csv(path, header=None, nrows=5, dtype=str, keep_default_na=False)
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
+    except pd.errors.ParserError as exc:
+        raise ValueError(f"{path}: not a DeepLabCut CSV ({exc})") from None
+    except pd.errors.EmptyDataError:
+        raise ValueError(f"{path}: empty file, not a DeepLabCut CSV") from None
     first = [str(v).strip() for v in raw.iloc[:, 0]]
     n_header = 4 if len(first) > 1 and first[1] == "individuals" else 3
     if len(raw) < n_header or first[0] != "scorer":
@@ -67,7 +74,27 @@ def _read_csv(path: Path):
     n_index = next((i for i, v in enumerate(coords_row) if v in _COORDS), None)
     if n_index is None or n_index == 0:
         raise ValueError(f"{path}: not a DeepLabCut CSV (no x/y/likelihood header row)")
+    _check_csv_rows(path, len(coords_row))
     return pd.read_csv(path, header=list(range(n_header)), index_col=list(range(n_index)))
+
+
+def _check_csv_rows(path: Path, width: int) -> None:
+    """Refuse a DeepLabCut CSV with a row of another width than the header (pandas would pad
+    it with NaN): a cut last row or a damaged line, named by its line number."""
+    import csv
+
+    text = path.read_bytes()
+    try:
+        lines = text.decode("utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
+    for n, row in enumerate(csv.reader(lines), start=1):
+        if row and len(row) != width:
+            cut = n == len(lines) and not text.endswith((b"\n", b"\r"))
+            raise ValueError(
+                f"{path}: line {n} has {len(row)} fields, the header {width}"
+                + ("; the last line is cut: the file is incomplete" if cut else "")
+            )
 
 
 def read_dlc_table(path: str | Path, individual: str | None = None):
@@ -101,6 +128,8 @@ def read_dlc_table(path: str | Path, individual: str | None = None):
         try:
             with pd.HDFStore(p, mode="r") as store:
                 keys = store.keys()
+                if not keys:
+                    raise ValueError(f"{p}: an HDF5 file without a DeepLabCut table")
                 key = "/df_with_missing" if "/df_with_missing" in keys else keys[0]
                 df = store[key]
         except ImportError as exc:
@@ -108,6 +137,15 @@ def read_dlc_table(path: str | Path, individual: str | None = None):
                 f"{p}: reading DeepLabCut .h5 files needs PyTables (pip install tables), "
                 "or read the .csv file DeepLabCut writes beside it"
             ) from exc
+        except ValueError:
+            raise
+        except Exception as exc:  # PyTables/HDF5 errors on damaged or truncated files
+            raise ValueError(
+                f"{p}: damaged or incomplete HDF5 file ({type(exc).__name__}); use the .csv "
+                "DeepLabCut writes beside it, or export the predictions again"
+            ) from None
+        if not hasattr(df, "columns") or not hasattr(df.columns, "nlevels"):
+            raise ValueError(f"{p}: the HDF5 table is not a DeepLabCut DataFrame")
     elif p.suffix.lower() == ".csv":
         df = _read_csv(p)
     else:
@@ -139,14 +177,18 @@ def read_dlc_table(path: str | Path, individual: str | None = None):
     points = np.full((n, len(bodyparts), 2), np.nan)
     has_lik = (scorer, bodyparts[0], "likelihood") in set(cols)
     lik = np.full((n, len(bodyparts)), np.nan) if has_lik else None
-    try:
-        for j, bp in enumerate(bodyparts):
+    for j, bp in enumerate(bodyparts):
+        name = "x"
+        try:
             for c, name in enumerate(("x", "y")):
                 points[:, j, c] = df[(scorer, bp, name)].to_numpy(dtype=float)
             if lik is not None:
+                name = "likelihood"
                 lik[:, j] = df[(scorer, bp, "likelihood")].to_numpy(dtype=float)
-    except KeyError as exc:
-        raise ValueError(f"{p}: column {exc} is missing (every body part needs x and y)") from None
+        except KeyError:
+            raise ValueError(f"{p}: body part {bp!r} has no {name!r} column") from None
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{p}: body part {bp!r}, {name}: not numbers ({exc})") from None
     frames = np.array([_frame_number(lab, i) for i, lab in enumerate(df.index)], dtype=np.int64)
     if len(set(frames.tolist())) != len(frames):
         raise ValueError(f"{p}: two rows have the same frame number")

@@ -1,8 +1,11 @@
 """The project workflow: calibrate -> learn -> track -> export -> plot, step by step.
 
 Each step reads what the previous one wrote in the project folder (layout in
-``docs/project.md``), skips its work when its output exists (unless ``overwrite``), writes
-atomically and logs to ``<project>/logs/acm-rs-<time>.log``:
+``docs/project.md``), writes atomically and logs to ``<project>/logs/acm-rs-<time>.log``. A
+finished step leaves a record of what it was made from (:mod:`acm_rs._provenance`: digests of
+its inputs, its settings, the package version); the next run skips it only while that record
+still matches and says why it skips or redoes it. A re-made output changes the record of the
+steps after it, so they are redone too; an interrupted step is never taken as done:
 
 =============  ==================================================  ===========================
 step           input                                               output
@@ -28,6 +31,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from . import _provenance as prov
 from .project import ProjectConfig, Session, find_sessions, load_config
 
 __all__ = [
@@ -78,10 +82,24 @@ def _say(msg: str) -> None:
     log.info(msg)
 
 
-def _skip(path: Path, overwrite: bool, what: str) -> bool:
-    if path.exists() and not overwrite:
-        _say(f"{what}: {path} exists, skipped (--overwrite to redo)")
+def _skip(path: Path, overwrite: bool, what: str, fresh: dict) -> bool:
+    """Whether the step that makes ``path`` can be skipped; says why it skips or redoes."""
+    if overwrite:
+        if path.exists():
+            _say(f"{what}: --overwrite: redoing {path}")
+        return False
+    why = prov.stale(path, fresh)
+    if why is None:
+        if prov.read_record(path) is None:
+            _say(
+                f"{what}: {path} exists and was not made by this workflow (no record), kept "
+                "(--overwrite to redo)"
+            )
+        else:
+            _say(f"{what}: {path} is up to date (same inputs, settings, version), skipped")
         return True
+    if path.exists():
+        _say(f"{what}: redoing {path}: {why}")
     return False
 
 
@@ -102,9 +120,10 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
     from .project import VIDEO_SUFFIXES, _camera_of
 
     out = _calibration_path(config)
-    if _skip(out, overwrite, "calibrate"):
-        return out
     folder = config.root / "calibration"
+    if out.exists() and not folder.is_dir() and not overwrite:
+        _say(f"calibrate: {out} exists and there is no calibration/ folder, kept")
+        return out
     if not folder.is_dir():
         raise FileNotFoundError(
             f"{folder}: no calibration folder; put one board video (or image folder) per camera "
@@ -118,6 +137,13 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
             if cam is not None:
                 sources[cam] = p
     names = list(config.cameras["names"]) or sorted(sources)
+    fresh = prov.fresh_record(
+        "calibrate",
+        {f"board:{n}": sources.get(n) for n in names},
+        {"board": config.board(), "cameras": names},
+    )
+    if _skip(out, overwrite, "calibrate", fresh):
+        return out
     missing = [n for n in names if n not in sources]
     if missing or not names:
         raise ValueError(
@@ -132,6 +158,7 @@ def step_calibrate(config: ProjectConfig, overwrite: bool = False) -> Path:
     res = calibrate(det.corners, spec.board_points, det.image_sizes, camera_names=names)
     res.save(out)
     res.save_report(out.with_suffix(".report.json"), png=out.with_suffix(".qc.png"))
+    prov.write_record(out, fresh)
     _say(f"calibrate: {len(names)} cameras, RMS {res.rms:.3f} px -> {out}")
     return out
 
@@ -160,6 +187,12 @@ def _load_rig(config: ProjectConfig, session: Session | None = None, cameras=Non
     return rig, mapping
 
 
+def _model_file(config: ProjectConfig) -> Path | None:
+    """The project's model file when ``project.model`` is a path (None for a bundled name)."""
+    local = config.root / config.project["model"]
+    return local if local.is_file() else None
+
+
 def _generic_model(config: ProjectConfig):
     from .models import load_name_or_file
 
@@ -172,26 +205,39 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
     """Learn bone lengths and marker offsets from ``paths.manual_labels`` (one DeepLabCut
     ``CollectedData`` file per camera, camera names from ``cameras.regex``).
 
-    Without manual labels the generic model is copied (and the log says so).
+    Without manual labels nothing is saved (and the log says so: tracking then uses the
+    generic model). Skipped while its record (:mod:`acm_rs._provenance`) matches.
     """
     from .dlc import concat_labels, read_labels
     from .learning import learn_skeleton
     from .project import camera_table, find_manual_labels, read_dlc_config
 
     out = config.root / SKELETON_NAME
-    if _skip(out, overwrite, "learn"):
-        return out
-    generic = _generic_model(config)
     folder = config.root / config.paths["manual_labels"]
     dlc = read_dlc_config(config.root)
     groups = find_manual_labels(folder, config.camera_regex, dlc.get("scorer") if dlc else None)
     if not groups:
+        # nothing is learned, so nothing is saved as skeleton.toml: track says it uses the
+        # generic model, and a later run with labels learns.
         _say(
-            f"learn: no manual labels in {folder} (files or <video>/CollectedData_*.h5|.csv); "
-            f"using the generic {generic.name} model as skeleton.toml"
+            f"learn: WARNING: no manual labels in {folder} (files or "
+            "<video>/CollectedData_*.h5|.csv); nothing learned, tracking will use the generic "
+            f"{config.project['model']} model (bones off by the animal's size)"
         )
-        generic.save(out)
         return out
+    label_files = {
+        f"labels:{name or '.'}:{c}": f for name, g in sorted(groups.items()) for c, f in g.items()
+    }
+    fresh = prov.fresh_record(
+        "learn",
+        {**label_files, "calibration": _calibration_path(config), "model": _model_file(config)},
+        {"model": config.project["model"], "body_weight": config.project.get("body_weight"),
+         "pcutoff": config.tracking["pcutoff"], "individual": config.project.get("individual"),
+         "cameras": list(config.cameras["names"])},
+    )  # fmt: skip
+    if _skip(out, overwrite, "learn", fresh):
+        return out
+    generic = _generic_model(config)
     cams = sorted({c for g in groups.values() for c in g})
     names = list(config.cameras["names"]) or cams
     unknown = sorted(set(cams) - set(names))
@@ -213,6 +259,7 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
         pcutoff=config.tracking["pcutoff"],
     )  # fmt: skip
     res.skeleton.save(out)
+    prov.write_record(out, fresh)
     _say(
         f"learn: {labels.points.shape[1]} labelled frames of {len(groups)} recording(s), "
         f"RMS {res.rms:.2f} px -> {out}"
@@ -237,20 +284,38 @@ def step_track(
 
     folder = _session_output(session, out)
     path = folder / POSE_NAME
-    if _skip(path, overwrite, f"track {session.name}"):
-        return path
     if not session.labels:
         raise FileNotFoundError(
             f"{session.path / config.paths['labels']}: no DeepLabCut predictions for this session"
         )
     from .project import camera_table
 
+    skel_path = config.root / SKELETON_NAME
+    learned = skel_path.is_file()
+    fresh = prov.fresh_record(
+        f"track {session.name}",
+        {**{f"labels:{c}": session.labels.get(c) for c in session.cameras},
+         "calibration": session.calibration, "skeleton": skel_path if learned else None,
+         "model": None if learned else _model_file(config)},
+        {"tracking": {k: v for k, v in config.tracking.items() if k != "fps"},  # fps: export
+         "em": config.em, "cameras": list(session.cameras),
+         "individual": config.project.get("individual"),
+         "model": None if learned else config.project["model"]},
+    )  # fmt: skip
+    if _skip(path, overwrite, f"track {session.name}", fresh):
+        return path
     rig, mapping = _load_rig(config, session)
     table = camera_table(mapping, {"video": session.videos, "2D poses": session.labels})
     for line in table.splitlines():
         _say(f"track {session.name}: " + line)
-    skel_path = config.root / SKELETON_NAME
-    skeleton = Skeleton.load(skel_path) if skel_path.is_file() else _generic_model(config)
+    if learned:
+        skeleton = Skeleton.load(skel_path)
+    else:
+        skeleton = _generic_model(config)
+        _say(
+            f"track {session.name}: WARNING: no learned {skel_path}; tracking with the generic "
+            f"{skeleton.name} model (run the learn step with manual labels for accurate bones)"
+        )
     ls = read_labels(
         [session.labels[c] for c in session.cameras], individual=config.project.get("individual")
     )
@@ -262,10 +327,25 @@ def step_track(
         progress=None,
     )  # fmt: skip
     res.info["frames"] = ls.frames[::dt]
+    res.info["skeleton"] = "learned" if learned else f"generic {skeleton.name}"
     folder.mkdir(parents=True, exist_ok=True)
     res.save(path)
+    interrupted = bool(res.info.get("interrupted"))
+    prov.write_record(path, fresh, interrupted=interrupted)
+    if interrupted:
+        _say(f"track {session.name}: interrupted (Ctrl-C); {path} is marked unfinished")
+        raise KeyboardInterrupt
     _say(f"track {session.name}: {res.summary().splitlines()[0]} -> {path}")
     return path
+
+
+def _check_finished(pose: Path, what: str) -> None:
+    """Refuse to work from a pose file of an interrupted (or missing) track step."""
+    if not pose.is_file():
+        raise FileNotFoundError(f"{what}: no {pose}; run the track step first")
+    rec = prov.read_record(pose)
+    if rec is not None and rec.get("interrupted"):
+        raise ValueError(f"{what}: {pose} is from an interrupted track step; run track again")
 
 
 def step_export(
@@ -278,12 +358,14 @@ def step_export(
 
     folder = _session_output(session, out)
     csv = folder / "pose_3d.csv"
-    if _skip(csv, overwrite, f"export {session.name}"):
+    video_fps = session_fps(config, session)
+    fps = video_fps / int(config.tracking["dt"]) if video_fps else None  # the tracked frames
+    fresh = prov.fresh_record(f"export {session.name}", {"pose": folder / POSE_NAME}, {"fps": fps})
+    _check_finished(folder / POSE_NAME, f"export {session.name}")
+    if _skip(csv, overwrite, f"export {session.name}", fresh):
         return [csv]
     res = PoseResult.load(folder / POSE_NAME)
     files = export.to_anipose_csv(res, csv)
-    video_fps = session_fps(config, session)
-    fps = video_fps / int(config.tracking["dt"]) if video_fps else None  # the tracked frames
     if fps:
         try:
             files.append(export.to_movement_file(res, folder / "pose_movement.nc", fps=video_fps))
@@ -303,6 +385,7 @@ def step_export(
             f"export {session.name}: no frame rate (tracking.fps unset, no video metadata); "
             "NWB, C3D and movement files skipped"
         )
+    prov.write_record(csv, fresh)
     _say(f"export {session.name}: {', '.join(f.name for f in files)}")
     return files
 
@@ -325,11 +408,18 @@ def step_plot(
     from .tracking import PoseResult
 
     folder = _session_output(session, out) / "plots"
-    if _skip(folder, overwrite, f"plot {session.name}"):
-        return []
-    res = PoseResult.load(_session_output(session, out) / POSE_NAME)
+    pose = _session_output(session, out) / POSE_NAME
     fps = session_fps(config, session)
     rate = fps / int(config.tracking["dt"]) if fps else None  # of the tracked frames
+    fresh = prov.fresh_record(
+        f"plot {session.name}",
+        {"pose": pose, **{f"video:{c}": v for c, v in session.videos.items()}},
+        {"fps": rate, "dt": config.tracking["dt"]},
+    )
+    _check_finished(pose, f"plot {session.name}")
+    if _skip(folder, overwrite, f"plot {session.name}", fresh):
+        return []
+    res = PoseResult.load(pose)
     files = plot_all(res, folder, frame_rate=rate)
     try:
         from .plots.viewer import view_html
@@ -351,6 +441,7 @@ def step_plot(
             _say(f"plot {session.name}: overlay video {folder / 'overlay.mp4'}")
         except ValueError as exc:  # e.g. videos longer than the tracked range
             _say(f"plot {session.name}: no overlay video ({exc})")
+    prov.write_record(folder, fresh)
     return files
 
 
@@ -398,6 +489,10 @@ def _run_all(project: str | Path, overwrite: bool, steps: tuple[str, ...]) -> di
                 if "plot" in steps:
                     step_plot(config, session, overwrite)
                 status[session.name] = "ok"
+            except KeyboardInterrupt:
+                status[session.name] = "interrupted"
+                _say(f"acm-rs: session {session.name} interrupted; it is not done")
+                raise
             except (ValueError, OSError, ArithmeticError) as exc:
                 status[session.name] = f"{type(exc).__name__}: {exc}"
                 log.exception("session %s failed", session.name)
@@ -479,8 +574,10 @@ def _cmd_plot(args) -> int:
         finally:
             _ECHO.reset(token)
         return 0
-    res = PoseResult.load(src)
     out = Path(args.output) if args.output else src.with_name(src.stem + "_plots")
+    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
+        raise ValueError(f"{out} holds files already; pass --overwrite to replace its figures")
+    res = PoseResult.load(src)
     files = plot_all(res, out, pdf=args.pdf, frame_rate=args.rate)
     for f in files:
         print(f"  wrote {f}")
@@ -504,5 +601,5 @@ def add_subcommands(sub) -> None:
     q.add_argument("-o", "--output", help="folder for the figures (default: <input>_plots)")
     q.add_argument("--pdf", action="store_true", help="also write PDF")
     q.add_argument("--rate", type=float, help="frame rate (Hz) for time axes in seconds")
-    q.add_argument("--overwrite", action="store_true", help="redo a project's figures")
+    q.add_argument("--overwrite", action="store_true", help="replace existing figures")
     q.set_defaults(func=_cmd_plot)

@@ -647,6 +647,16 @@ class Skeleton:
             for i, entry in enumerate(doc.get(key, [])):
                 if isinstance(entry, Mapping):
                     _check_keys(entry, allowed, source, f"{key}[{i}] ({entry.get('name', '?')}): ")
+        for key in ("joints", "markers"):
+            seen: dict[str, int] = {}
+            for i, entry in enumerate(doc.get(key, [])):
+                name = entry.get("name") if isinstance(entry, Mapping) else None
+                if name in seen:
+                    raise ValueError(
+                        f"{source}: {key}[{i}] repeats the name {name!r} of {key}[{seen[name]}]; "
+                        f"{key[:-1]} names must be unique (rename one)"
+                    )
+                seen[name] = i
         try:
             joints = doc["joints"]
             markers = doc.get("markers", [])

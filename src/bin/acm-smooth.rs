@@ -32,6 +32,7 @@ Output (NPZ, written atomically): t (T,3), r (T,B,3), joints (T,J,3), joints_std
 options:
   -o, --out-dir DIR   write results into DIR (default: next to each input)
   --no-cov            do not store the (T, n, n) posterior covariances
+  --overwrite         replace existing results (default: refuse before any work)
   -q, --quiet         no per-iteration lines
   -h, --help          show this help
 
@@ -50,7 +51,7 @@ fn output_path(input: &Path, out_dir: Option<&Path>) -> PathBuf {
 
 fn main() -> ExitCode {
     let mut inputs = Vec::new();
-    let (mut out_dir, mut keep_cov, mut quiet) = (None, true, false);
+    let (mut out_dir, mut keep_cov, mut quiet, mut overwrite) = (None, true, false, false);
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -66,6 +67,7 @@ fn main() -> ExitCode {
                 }
             },
             "--no-cov" => keep_cov = false,
+            "--overwrite" => overwrite = true,
             "-q" | "--quiet" => quiet = true,
             s if s.starts_with('-') => {
                 eprintln!("acm-smooth: unknown option {s} (see --help)");
@@ -81,6 +83,25 @@ fn main() -> ExitCode {
     if let Some(d) = &out_dir {
         if let Err(e) = std::fs::create_dir_all(d) {
             eprintln!("acm-smooth: {}: {e}", d.display());
+            return ExitCode::FAILURE;
+        }
+    }
+    // The overwrite policy of every acm-rs command: check all outputs before any work.
+    let mut seen = std::collections::HashSet::new();
+    for input in &inputs {
+        let out = output_path(input, out_dir.as_deref());
+        if !seen.insert(out.clone()) {
+            eprintln!(
+                "acm-smooth: two inputs would write {}; give inputs with distinct names",
+                out.display()
+            );
+            return ExitCode::FAILURE;
+        }
+        if out.exists() && !overwrite {
+            eprintln!(
+                "acm-smooth: {} exists; pass --overwrite to replace it",
+                out.display()
+            );
             return ExitCode::FAILURE;
         }
     }

@@ -26,8 +26,14 @@ pub struct Csv {
     pub d: usize,
 }
 
+/// True when the text does not end with a line break: its last line may have been cut.
+fn cut_at_end(text: &str) -> bool {
+    !text.is_empty() && !text.ends_with('\n') && !text.ends_with('\r')
+}
+
 /// Parses a CSV marker table (comma-separated; a first line with a non-numeric field is a
-/// header). Errors name the line and column of a bad value or a row of the wrong length.
+/// header). Errors name the line and column of a bad value or a row of the wrong length (a
+/// cut last line: the file is incomplete).
 pub fn read_csv(text: &str) -> Result<Csv> {
     let mut lines = text.lines().filter(|l| !l.trim().is_empty()).peekable();
     let mut header = None;
@@ -38,24 +44,37 @@ pub fn read_csv(text: &str) -> Result<Csv> {
         }
     }
     let mut x = Vec::new();
-    let mut d = 0;
+    let mut d = header.as_ref().map_or(0, |h| h.split(',').count());
     let mut t = 0;
-    for (n, line) in lines.enumerate() {
+    let mut lines = lines.peekable();
+    let mut n = 0;
+    while let Some(line) = lines.next() {
+        n += 1;
         let fields: Vec<&str> = line.split(',').collect();
-        if t == 0 {
+        if lines.peek().is_none() && cut_at_end(text) {
+            return Err(AcmError::Shape(format!(
+                "CSV data row {n} has no line end: the file may be cut; if it is complete, \
+                 end it with a line break"
+            )));
+        }
+        if t == 0 && d == 0 {
             d = fields.len();
         } else if fields.len() != d {
+            let cut = lines.peek().is_none() && cut_at_end(text);
             return Err(AcmError::Shape(format!(
-                "CSV data row {} has {} fields, expected {d}",
-                n + 1,
-                fields.len()
+                "CSV data row {n} has {} fields, expected {d}{}",
+                fields.len(),
+                if cut {
+                    "; the last line is cut: the file is incomplete"
+                } else {
+                    ""
+                }
             )));
         }
         for (c, f) in fields.iter().enumerate() {
             x.push(parse_value(f).ok_or_else(|| {
                 AcmError::Invalid(format!(
-                    "CSV data row {}, column {}: {f:?} is not a number",
-                    n + 1,
+                    "CSV data row {n}, column {}: {f:?} is not a number",
                     c + 1
                 ))
             })?);
@@ -109,7 +128,8 @@ impl Trc {
     }
 }
 
-/// Parses a TRC file (tab-separated).
+/// Parses a TRC file (tab-separated). A file with another number of data rows than its
+/// NumFrames, or whose last line is cut, is refused.
 pub fn read_trc(text: &str) -> Result<Trc> {
     let lines: Vec<&str> = text.lines().collect();
     if lines.len() < 5 || !lines[0].starts_with("PathFileType") {
@@ -130,11 +150,21 @@ pub fn read_trc(text: &str) -> Result<Trc> {
     let d = 3 * names.len();
     let mut x = Vec::new();
     let (mut frames, mut times) = (Vec::new(), Vec::new());
+    let last = lines.len() - 1;
     for (n, line) in lines[5..].iter().enumerate() {
         if line.trim().is_empty() {
             continue;
         }
         let fields: Vec<&str> = line.split('\t').collect();
+        if n + 5 == last && cut_at_end(text) {
+            return Err(AcmError::Shape(format!(
+                "TRC data line {} has no line end ({} of {} fields): the file may be cut; if it \
+                 is complete, end it with a line break",
+                n + 6,
+                fields.len(),
+                d + 2
+            )));
+        }
         if fields.len() < 2 || fields.len() > d + 2 {
             return Err(AcmError::Shape(format!(
                 "TRC data line {} has {} fields, expected at most {}",
@@ -154,6 +184,22 @@ pub fn read_trc(text: &str) -> Result<Trc> {
     }
     if frames.is_empty() {
         return Err(AcmError::Shape("TRC file has no data rows".into()));
+    }
+    let keys: Vec<&str> = lines[1].split('\t').map(str::trim).collect();
+    let vals: Vec<&str> = lines[2].split('\t').map(str::trim).collect();
+    if let Some(k) = keys.iter().position(|k| *k == "NumFrames") {
+        if let Some(v) = vals.get(k).filter(|v| !v.is_empty()) {
+            let declared: usize = v.parse().map_err(|_| {
+                AcmError::Invalid(format!("TRC NumFrames {v:?} is not a whole number"))
+            })?;
+            if declared != frames.len() {
+                return Err(AcmError::Shape(format!(
+                    "TRC NumFrames says {declared} frames but the file holds {} data rows; the \
+                     file is incomplete or was edited (fix NumFrames or restore the file)",
+                    frames.len()
+                )));
+            }
+        }
     }
     Ok(Trc {
         header: lines[..5].iter().map(|s| s.to_string()).collect(),
@@ -235,5 +281,129 @@ Frame#\tTime\tA\t\t\tB\t\t\n\
         assert_eq!(again.names, trc.names);
         assert_eq!(again.x[..9], trc.x[..9]);
         assert!(read_trc("hello\n").is_err());
+        // a truncated copy: NumFrames says 2, one row and a cut one are present
+        let cut = &text[..text.len() - 8];
+        let err = read_trc(cut).unwrap_err().to_string();
+        assert!(err.contains("cut"), "{err}");
+        let one_row = text.replace("\n2\t0.01\t1.5\t2\t3\t\t\t\n", "\n");
+        let err = read_trc(&one_row).unwrap_err().to_string();
+        assert!(err.contains("NumFrames says 2"), "{err}");
+    }
+
+    #[test]
+    fn csv_cut_last_line_is_named() {
+        let err = read_csv("a_x,a_y,a_z\n1,2,3\n4,5").unwrap_err().to_string();
+        assert!(err.contains("cut"), "{err}");
+        let err = read_csv("a_x,a_y,a_z\n1,2,3\n4,5,6")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("no line end"), "{err}");
+        assert!(read_csv("a_x,a_y\n1,2,3\n").is_err()); // wider than the header
+    }
+
+    fn fuzz_bytes(seed: u64, n: usize) -> Vec<u8> {
+        // xorshift: deterministic pseudo-random bytes, mostly from the TRC/CSV alphabet
+        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        let alphabet = b"0123456789.-,\t\nNaEe x";
+        (0..n)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                if s % 17 == 0 {
+                    (s >> 8) as u8
+                } else {
+                    alphabet[(s >> 8) as usize % alphabet.len()]
+                }
+            })
+            .collect()
+    }
+
+    proptest::proptest! {
+        /// Any text: the readers return a table or an error, never panic.
+        #[test]
+        fn arbitrary_text_never_panics(s in "[0-9a-zA-Z.,\t\n\r -]{0,300}") {
+            let _ = read_csv(&s);
+            let _ = read_trc(&s);
+            let _ = read_trc(&format!("PathFileType\t4\nNumFrames\n2\nFrame#\tTime\tA\n\n{s}"));
+        }
+
+        /// A written table cut anywhere reads back whole or not at all (TRC: NumFrames and
+        /// the line end; CSV: the line end, or whole rows only).
+        #[test]
+        fn truncated_tables_are_refused_or_whole(
+            vals in proptest::collection::vec(-1e6f64..1e6, 3..30),
+            frac in 0.0f64..1.0,
+        ) {
+            let t = vals.len() / 3;
+            let x = &vals[..3 * t];
+            let csv = write_csv(Some("a_x,a_y,a_z"), x, 3);
+            let cut = &csv[..(csv.len() as f64 * frac) as usize];
+            if let Ok(c) = read_csv(cut) {
+                proptest::prop_assert!(cut.ends_with('\n'));
+                proptest::prop_assert_eq!(&c.x[..], &x[..c.x.len()]);
+            }
+            let trc = Trc {
+                header: vec![
+                    "PathFileType\t4\t(X/Y/Z)\tp.trc".into(),
+                    "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits".into(),
+                    format!("100\t100\t{t}\t1\tmm"),
+                    "Frame#\tTime\tA\t\t".into(),
+                    "\t\tX1\tY1\tZ1".into(),
+                ],
+                names: vec!["A".into()],
+                frames: (1..=t).map(|i| i.to_string()).collect(),
+                times: (0..t).map(|i| format!("{}", i as f64 / 100.0)).collect(),
+                x: x.to_vec(),
+            };
+            let text = write_trc(&trc, x);
+            let cut = &text[..(text.len() as f64 * frac) as usize];
+            if let Ok(back) = read_trc(cut) {
+                proptest::prop_assert_eq!(&back.x[..], x);
+            }
+        }
+    }
+
+    #[test]
+    fn truncated_and_corrupted_text_never_panics_or_passes_short() {
+        let text = write_trc(
+            &read_trc(
+                "PathFileType\t4\t(X/Y/Z)\tt.trc\n\
+DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\n\
+100\t100\t3\t1\tmm\n\
+Frame#\tTime\tA\t\t\n\
+\t\tX1\tY1\tZ1\n\
+1\t0\t1.25\t2.5\t3.75\n\
+2\t0.01\t1.5\t2.5\t3.75\n\
+3\t0.02\t1.75\t2.5\t3.75\n",
+            )
+            .unwrap(),
+            &[1.25, 2.5, 3.75, 1.5, 2.5, 3.75, 1.75, 2.5, 3.75],
+        );
+        let full = read_trc(&text).unwrap();
+        for cut in 0..text.len() {
+            // every truncation is refused or (cut inside the final line break) complete
+            if let Ok(t) = read_trc(&text[..cut]) {
+                assert_eq!(t.x, full.x, "cut at {cut} passed with other values");
+            }
+        }
+        let csv = write_csv(Some("A_x,A_y,A_z"), &full.x, 3);
+        let whole = read_csv(&csv).unwrap();
+        for cut in 0..csv.len() {
+            if let Ok(c) = read_csv(&csv[..cut]) {
+                // only a cut right after a line break passes: whole rows, same values
+                assert!(csv[..cut].ends_with('\n'), "cut {cut} passed");
+                assert!(
+                    c.t <= whole.t && c.x[..] == whole.x[..c.x.len()],
+                    "cut {cut}"
+                );
+            }
+        }
+        for seed in 0..300 {
+            let bytes = fuzz_bytes(seed, 200);
+            let s = String::from_utf8_lossy(&bytes);
+            let _ = read_csv(&s);
+            let _ = read_trc(&format!("{}{s}", &text[..text.len() / 2]));
+        }
     }
 }

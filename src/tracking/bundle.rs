@@ -66,16 +66,50 @@ fn shaped<'a>(
             .zip(shape)
             .all(|(s, e)| e.is_none_or(|e| e == *s));
     if !ok {
+        let expected: Vec<String> = shape
+            .iter()
+            .map(|e| e.map_or_else(|| "any".to_string(), |e| e.to_string()))
+            .collect();
         return Err(AcmError::Shape(format!(
-            "{what}: '{key}' has shape {:?}, expected {:?} (None = any)",
-            a.shape, shape
+            "{what}: '{key}' has shape {:?}, expected [{}]",
+            a.shape,
+            expected.join(", ")
         )));
     }
     Ok(a)
 }
 
 fn scalar(m: &BTreeMap<String, Array>, key: &str, default: f64) -> f64 {
-    m.get(key).map_or(default, |a| a.data[0])
+    m.get(key)
+        .and_then(|a| a.data.first().copied())
+        .unwrap_or(default)
+}
+
+/// A scalar option of the bundle checked against `ok` (the message says what is allowed).
+fn checked(
+    m: &BTreeMap<String, Array>,
+    key: &str,
+    default: f64,
+    ok: impl Fn(f64) -> bool,
+    allowed: &str,
+    what: &str,
+) -> Result<f64> {
+    if let Some(a) = m.get(key) {
+        if a.data.len() != 1 {
+            return Err(AcmError::Shape(format!(
+                "{what}: '{key}' must be one number, got shape {:?}",
+                a.shape
+            )));
+        }
+    }
+    let v = scalar(m, key, default);
+    if ok(v) {
+        Ok(v)
+    } else {
+        Err(AcmError::Invalid(format!(
+            "{what}: '{key}' = {v} is not allowed; it must be {allowed}"
+        )))
+    }
 }
 
 /// Builds a [`Bundle`] from the arrays of a bundle NPZ.
@@ -140,7 +174,14 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
                 lik.shape
             )));
         }
-        let pcutoff = scalar(m, "pcutoff", 0.9);
+        let pcutoff = checked(
+            m,
+            "pcutoff",
+            0.9,
+            |v| (0.0..=1.0).contains(&v),
+            "in [0, 1]",
+            what,
+        )?;
         for (k, &l) in lik.data.iter().enumerate() {
             if l.is_nan() || l < pcutoff {
                 detections[2 * k] = f64::NAN;
@@ -148,14 +189,61 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
             }
         }
     }
-    let noise = scalar(m, "noise", 1e-3);
-    let gate = scalar(m, "gate", f64::NAN);
+    let noise = checked(
+        m,
+        "noise",
+        1e-3,
+        |v| v.is_finite() && v > 0.0,
+        "a finite number > 0",
+        what,
+    )?;
+    let nan_or_positive = |v: f64| v.is_nan() || (v.is_finite() && v > 0.0);
+    let gate = checked(
+        m,
+        "gate",
+        f64::NAN,
+        nan_or_positive,
+        "NaN (off) or > 0",
+        what,
+    )?;
+    let ll_tol = checked(
+        m,
+        "ll_tol",
+        f64::NAN,
+        nan_or_positive,
+        "NaN (off) or > 0",
+        what,
+    )?;
+    let dof = checked(
+        m,
+        "dof",
+        f64::NAN,
+        nan_or_positive,
+        "NaN (Gaussian) or > 0",
+        what,
+    )?;
+    let max_iter = checked(
+        m,
+        "max_iter",
+        100.0,
+        |v| v.is_finite() && v >= 1.0 && v.fract() == 0.0,
+        "a whole number >= 1",
+        what,
+    )?;
+    let tol = checked(
+        m,
+        "tol",
+        0.05,
+        |v| v.is_finite() && v > 0.0,
+        "a finite number > 0",
+        what,
+    )?;
     let options = EmOptions {
-        max_iter: scalar(m, "max_iter", 100.0) as usize,
-        tol: scalar(m, "tol", 0.05),
+        max_iter: max_iter as usize,
+        tol,
         gate: (gate.is_finite() && gate > 0.0).then_some(gate),
-        ll_tol: Some(scalar(m, "ll_tol", f64::NAN)).filter(|v| v.is_finite() && *v > 0.0),
-        dof: Some(scalar(m, "dof", f64::NAN)).filter(|v| v.is_finite() && *v > 0.0),
+        ll_tol: Some(ll_tol).filter(|v| v.is_finite() && *v > 0.0),
+        dof: Some(dof).filter(|v| v.is_finite() && *v > 0.0),
     };
     let init = Params::initial(mu0, model.n_meas(), noise);
     Ok(Bundle {

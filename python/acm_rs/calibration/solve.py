@@ -116,6 +116,26 @@ def _check_inputs(corners, board_points, image_size):
         raise ValueError(f"image_size must be (w, h) or have shape ({n_cams}, 2), got {s.shape}")
     if not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise ValueError(f"image sizes must be positive, got {s.tolist()}")
+    neg = c < -0.5
+    if neg.any():
+        idx = np.argwhere(neg)[0]
+        raise ValueError(
+            f"corners: camera {idx[0]}, frame {idx[1]}, point {idx[2]} is at "
+            f"{c[tuple(idx[:3])].tolist()} px, outside the image; undetected corners must be "
+            "NaN (not -1): corners = np.where(corners < 0, np.nan, corners)"
+        )
+    for cam in range(n_cams):
+        w, h = s[cam]
+        with np.errstate(invalid="ignore"):
+            out = (c[cam, ..., 0] > w + 0.5) | (c[cam, ..., 1] > h + 0.5)
+        if out.any():
+            f, q = np.argwhere(out)[0]
+            swapped = bool(np.nanmax(c[cam, ..., 0]) <= h and np.nanmax(c[cam, ..., 1]) <= w)
+            raise ValueError(
+                f"corners: camera {cam}, frame {f}, point {q} at {c[cam, f, q].tolist()} px lies "
+                f"outside its image_size {s[cam].tolist()} (width, height)"
+                + ("; the size looks swapped: give (width, height)" if swapped else "")
+            )
     return np.ascontiguousarray(c), np.ascontiguousarray(b), s.round().astype(np.int64)
 
 

@@ -55,6 +55,8 @@ def to_c3d(
     """
     import ezc3d
 
+    from ..gapfill.io import set_c3d_frame_count
+
     path = Path(path)
     if path.suffix.lower() != ".c3d":
         raise ValueError(f"C3D path must end in .c3d, got {path.name!r}")
@@ -101,6 +103,7 @@ def to_c3d(
     c["data"]["points"] = data
     c["data"]["meta_points"]["residuals"] = residuals
     c.add_parameter("PROCESSING", "SOFTWARE", "acm-rs")
+    set_c3d_frame_count(c, n_t)  # recordings over 65535 frames
     with atomic_path(path) as tmp:
         c.write(str(tmp))
     return path

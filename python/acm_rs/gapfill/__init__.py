@@ -106,7 +106,9 @@ def fill(
     ----------
     X : array_like, shape (n_frames, n_markers, 3)
         Marker positions (any length unit, typically mm); NaN marks a missing value. A marker
-        is missing as a whole when any of its coordinates is NaN.
+        with some coordinates NaN is estimated as missing (the model needs whole points), but
+        its observed coordinates are returned unchanged: only the NaN coordinates are filled
+        (with ``keep_original=True``, the default).
     method : {"lowdim", "lowdim-paper", "linear", "spline", "rw", "cv", "msvd"}
         ``"lowdim"`` (default): low-dimensional Kalman smoothing (Burke & Lasenby 2016,
         Algorithm 1) with the RTS gain fixed, Q and R learned by EM, a subspace that also works
@@ -175,7 +177,9 @@ def fill(
     # in part (then all its coordinates become NaN) or it is not C-contiguous.
     nan = np.isnan(arr)
     missing = nan[..., 0] | nan[..., 1] | nan[..., 2]
-    if np.count_nonzero(nan) != 3 * np.count_nonzero(missing):
+    partial = np.count_nonzero(nan) != 3 * np.count_nonzero(missing)
+    observed = arr
+    if partial:
         arr = arr.copy()
         np.copyto(arr, np.nan, where=missing[..., None])
     dead = missing.all(axis=0)
@@ -217,14 +221,21 @@ def fill(
     else:
         out = arr.copy()
         out[:, keep] = filled_sub.reshape(n_frames, -1, 3)
+    if partial and opts["keep_original"]:
+        # a fill never changes an observed coordinate, also of a partly observed point
+        np.copyto(out, observed, where=~nan)
     if not full_output:
         return out
     imputed = np.zeros(arr.shape, dtype=bool)
     imputed[:, keep] = np.repeat(missing[:, keep, None], 3, axis=2)
+    if partial and opts["keep_original"]:
+        imputed &= nan
     std = None
     if std_sub is not None and method not in ("linear", "spline", "msvd"):
         std = np.zeros(arr.shape)
         std[:, keep] = std_sub.reshape(n_frames, -1, 3)
         std[:, dead] = np.nan
+        if partial and opts["keep_original"]:
+            std[~nan] = 0.0
     info = {**info, "method": method, "options": opts, "skipped_markers": np.flatnonzero(dead)}
     return FillResult(filled=out, std=std, imputed=imputed, info=info)

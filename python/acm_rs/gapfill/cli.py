@@ -21,17 +21,29 @@ def _stage(msg: str, start: float) -> None:
 
 
 def _cmd_gapfill(args: argparse.Namespace) -> int:
+    from .._io import check_output_path
+    from .._native import AcmNumericalError
     from . import fill
-    from .io import read, write_like
+    from .io import check_output, read, sidecar_path, write_like
 
     src = Path(args.input)
-    out = Path(args.output)
-    if out.exists() and not args.overwrite:
-        raise ValueError(f"{out} exists; pass --overwrite to replace it")
+    out = check_output_path(args.output, args.overwrite)
+    if args.std:
+        check_output_path(args.std, args.overwrite, "--std output")
+    for o in [out] + ([Path(args.std)] if args.std else []):
+        if o.suffix.lower() in (".trc", ".csv"):
+            check_output_path(sidecar_path(o), args.overwrite, "sidecar")
     start = time.perf_counter()
     m = read(src)
     n_t, n_m = m.xyz.shape[:2]
     _stage(f"read {src}: {n_t:,} frames x {n_m} markers", start)
+    if args.rate is not None:
+        if m.rate is not None and abs(m.rate - args.rate) > 1e-9 * m.rate:
+            raise ValueError(f"{src} says {m.rate:g} Hz; --rate {args.rate:g} disagrees")
+        m.rate = args.rate
+    check_output(out, m.rate)
+    if args.std:
+        check_output(args.std, m.rate)
     opts = {}
     if args.gamma is not None:
         opts["gamma"] = args.gamma
@@ -44,12 +56,20 @@ def _cmd_gapfill(args: argparse.Namespace) -> int:
         start,
     )
     # the posterior SDs double the time and memory of the smoother: only when asked for
-    res = fill(m.xyz, method=args.method, full_output=bool(args.std), empty="skip", **opts)
+    try:
+        res = fill(m.xyz, method=args.method, full_output=bool(args.std), empty="skip", **opts)
+    except AcmNumericalError as exc:
+        raise ValueError(
+            f"{src}: the {args.method} fill failed numerically ({exc}); try --method spline, "
+            "or check the file for frozen or duplicated markers"
+        ) from None
     filled = res.filled if args.std else res
+    # what the fill imputed: the missing coordinates it made finite (observed ones are kept)
+    imputed = np.isnan(m.xyz) & np.isfinite(filled)
     _stage("filled", start)
-    write_like(out, m, filled)
+    write_like(out, m, filled, filled=imputed)
     skipped = np.flatnonzero(missing.all(axis=0))
-    n_filled = int((missing & np.isfinite(filled).all(axis=2)).sum())
+    n_filled = int(imputed.any(axis=2).sum())
     print(
         f"acm-rs gapfill: {src} ({n_t} frames, {n_m} markers, "
         f"{int(missing.sum())} missing marker-frames) -> {out}: filled {n_filled} with "
@@ -67,9 +87,13 @@ def _cmd_gapfill(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    from .._io import check_output_path
     from .evaluate import evaluate
     from .io import read
 
+    out = Path(args.out)
+    for name in ("gapfill_eval.json", "gapfill_error_vs_length.png"):
+        check_output_path(out / name, args.overwrite)
     m = read(args.input)
     X = m.xyz
     if not np.isfinite(X).all():
@@ -92,7 +116,6 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     print(res.table(m.units or "file units"))
     for meth, msg in res.failures.items():
         print(f"  {meth} failed: {msg}")
-    out = Path(args.out)
     res.save_json(out / "gapfill_eval.json")
     res.plot(out / "gapfill_error_vs_length.png")
     print(f"  wrote {out / 'gapfill_eval.json'} and {out / 'gapfill_error_vs_length.png'}")
@@ -122,6 +145,9 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
         help="also compute the posterior standard deviations and write them to FILE (same "
         "format; opt-in: doubles the time and memory of the smoother)",
     )  # fmt: skip
+    g.add_argument(
+        "--rate", type=float, help="frame rate (Hz), needed for a TRC/C3D output of a CSV input"
+    )
     g.add_argument("--overwrite", action="store_true", help="replace an existing output")
     g.set_defaults(func=_cmd_gapfill)
     e = sub.add_parser("gapfill-eval", help="score gap-filling methods on a complete sequence")
@@ -135,4 +161,5 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
     e.add_argument(
         "--print-json", action="store_true", help="also print the scores as JSON on stdout"
     )
+    e.add_argument("--overwrite", action="store_true", help="replace existing results")
     e.set_defaults(func=_cmd_eval)

@@ -16,13 +16,38 @@ def _frame_slice(spec: str | None, n: int) -> slice:
     return slice(a, b)
 
 
+def _track_outputs(args: argparse.Namespace, out: Path) -> list[Path]:
+    """The files ``acm-rs track`` will write, checked before any work (overwrite policy,
+    writable folder, --rate for C3D)."""
+    from .._io import check_output_path
+
+    if args.bundle:
+        files = [out.with_suffix(".bundle.npz")]
+    else:
+        files = [out.with_suffix(".npz"), out.with_name(out.name + "_joints.csv")]
+        for fmt in args.export or []:
+            if fmt in ("c3d",) and not args.rate:
+                raise ValueError("--export c3d needs the frame rate; pass --rate (Hz)")
+            files.append(_export_path(fmt, out, "joints"))
+    if args.rate is not None and not args.rate > 0:
+        raise ValueError(f"--rate must be > 0 Hz, got {args.rate}")
+    for f in files:
+        check_output_path(f, args.overwrite)
+    if args.plots and Path(args.plots).exists() and not args.overwrite:
+        raise ValueError(f"{args.plots} exists; pass --overwrite to replace its figures")
+    return files
+
+
 def _cmd_track(args: argparse.Namespace) -> int:
+    import sys
+
     from ..dlc import read_labels
     from ..models import load_name_or_file
     from ..project import rig_for_files
     from .bundle import write_bundle
     from .track import track
 
+    _track_outputs(args, Path(args.output))
     rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names)
     if table:
         print("acm-rs track: cameras matched by the names in the files:\n  "
@@ -63,6 +88,15 @@ def _cmd_track(args: argparse.Namespace) -> int:
         noise_model=args.noise_model, **opts,
     )  # fmt: skip
     res.info["frames"] = ls.frames[sel]
+    if res.info.get("interrupted"):
+        # marked in the file (info["interrupted"]); no exports or plots of a partial result
+        path = res.save(out.with_name(out.name + "_interrupted"))[0]
+        print(
+            f"acm-rs track: interrupted (Ctrl-C); the unfinished result is in {path} "
+            "(marked interrupted); nothing else written",
+            file=sys.stderr,
+        )
+        return 130
     files = res.save(out)
     for fmt in args.export or []:
         files += _export(res, fmt, out, args.rate, "joints")
@@ -76,6 +110,17 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
 
 FORMATS = ("anipose", "nwb", "c3d", "npz", "movement")
+
+
+def _export_path(fmt: str, out: Path, points: str) -> Path:
+    """The file ``_export`` writes for ``fmt`` (anipose: the CSV; its sidecar is beside it)."""
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown export format {fmt!r}; choose from {', '.join(FORMATS)}")
+    if fmt == "anipose":
+        return out.with_name(out.stem + "_3d.csv")
+    if fmt == "movement":
+        return out.with_name(out.stem + "_movement.nc")
+    return out.with_suffix({"nwb": ".nwb", "c3d": ".c3d", "npz": ".npz"}[fmt])
 
 
 def _export(res, fmt: str, out: Path, rate: float | None, points: str) -> list[Path]:
@@ -105,10 +150,20 @@ def _export(res, fmt: str, out: Path, rate: float | None, points: str) -> list[P
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    from .._io import check_output_path
     from .result import PoseResult
 
-    res = PoseResult.load(args.input)
     out = Path(args.output) if args.output else Path(args.input).with_suffix("")
+    for fmt in args.format:
+        if fmt == "c3d" and not args.rate:
+            raise ValueError("--format c3d needs the frame rate; pass --rate (Hz)")
+        target = _export_path(fmt, out, args.points)
+        if target.resolve() == Path(args.input).resolve():
+            raise ValueError(f"{target} is the input; give another --output")
+        check_output_path(target, args.overwrite)
+    res = PoseResult.load(args.input)
+    if res.info.get("interrupted"):
+        print(f"acm-rs export: WARNING: {args.input} is the result of an interrupted run")
     files: list[Path] = []
     for fmt in args.format:
         files += _export(res, fmt, out, args.rate, args.points)
@@ -192,6 +247,7 @@ def add_subcommands(sub) -> None:
     p.add_argument("--plots", help="folder for the tracking figures")
     p.add_argument("--bundle", action="store_true", help="only write OUT.bundle.npz for acm-smooth")
     p.add_argument("-o", "--output", help="output prefix, e.g. out/session1")
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_project_option(p, "track")
     p.set_defaults(
         func=lambda a: project_step_or(
@@ -214,6 +270,7 @@ def add_subcommands(sub) -> None:
         help="video frame rate (Hz): needed for C3D; time in seconds for NWB and movement",
     )  # fmt: skip
     e.add_argument("-o", "--output", help="output prefix (default: next to the input)")
+    e.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_project_option(e, "export")
     e.set_defaults(func=lambda a: project_step_or(a, "export", _cmd_export, ("input", "--format")))
 

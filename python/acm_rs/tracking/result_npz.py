@@ -192,16 +192,54 @@ def read_npz(path: str | Path) -> dict:
     """Read a file written by :func:`to_npz` into a dict of arrays and strings.
 
     Text entries (``units``, ``skeleton_toml``, ``calibration_toml``, ``info_json``) become
-    ``str``; ``info_json`` is also parsed into ``info``.
+    ``str``; ``info_json`` is also parsed into ``info``. A damaged or truncated file (zip
+    directory, CRC, compressed data) or another kind of NPZ is refused with ``ValueError``
+    naming the file.
     """
-    with np.load(path, allow_pickle=False) as z:
-        if "format" not in z.files or str(z["format"]) != NPZ_FORMAT:
-            raise ValueError(f"{path}: not an acm-rs pose file (written by acm_rs.export.to_npz)")
-        out = {k: z[k] for k in z.files}
-    for k in ("format", "units", "skeleton_toml", "calibration_toml", "info_json"):
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"pose file not found: {p}")
+    with open(p, "rb") as fh:
+        magic = fh.read(4)
+    if magic != b"PK\x03\x04":
+        raise ValueError(
+            f"{p}: not a pose file: expected the .npz that acm-rs track writes (a zip archive)"
+            + (f", got a {p.suffix} file" if p.suffix and p.suffix != ".npz" else "")
+        )
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            if "format" not in z.files or str(z["format"]) != NPZ_FORMAT:
+                raise ValueError(
+                    f"{p}: not an acm-rs pose file (written by acm-rs track or "
+                    "acm_rs.export.to_npz)"
+                )
+            out = {k: z[k] for k in z.files}
+    except ValueError as exc:
+        if str(p) in str(exc):
+            raise
+        raise ValueError(
+            f"{p}: not a readable pose file ({exc}); an object array or another format? "
+            "Re-run acm-rs track to make it again"
+        ) from None
+    except Exception as exc:  # zip, CRC, zlib, a damaged .npy header (SyntaxError), ...
+        raise ValueError(
+            f"{p}: damaged or incomplete pose file ({type(exc).__name__}: {exc}); it was "
+            "probably cut while copying or writing; re-run acm-rs track to make it again"
+        ) from None
+    required = ("format", "units", "skeleton_toml", "calibration_toml", "info_json", "version")
+    lost = [k for k in required + ("joints",) if k not in out]
+    if lost:
+        raise ValueError(
+            f"{p}: damaged pose file: entries {lost} are missing (a damaged zip directory?); "
+            "re-run acm-rs track to make it again"
+        )
+    for k in required[:-1]:
         out[k] = str(out[k])
-    out["version"] = int(out["version"])
-    out["info"] = json.loads(out["info_json"])
+    try:
+        out["version"] = int(out["version"])
+        out["info"] = json.loads(out["info_json"])
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{p}: damaged pose file ({exc}); re-run acm-rs track") from None
     params = {k[7:]: out[k] for k in out if k.startswith("param__")}
     if params:
         out["info"]["params"] = params
