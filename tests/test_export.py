@@ -239,8 +239,13 @@ def test_c3d_round_trip(result, tmp_path):
     assert np.all(np.isnan(pts[:3, 4, 2]))
     resid = c["data"]["meta_points"]["residuals"]
     assert resid[0, 4, 2] == -1
-    assert resid[0, 1, 0] == 1 and resid[0, 0, 0] == 0
+    # the convention of every acm-rs C3D: 1 detected, 0 placed by the model only
+    assert resid[0, 1, 0] == 0 and resid[0, 0, 0] == 1
     assert os.stat(path).st_mode & 0o777 != 0o600
+    from acm_rs.gapfill.io import read
+
+    m = read(path)
+    assert m.filled is not None and m.filled[0, 1].all() and not m.filled[0, 0].any()
 
 
 def test_c3d_units_and_errors(result, tmp_path):

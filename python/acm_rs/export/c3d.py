@@ -31,8 +31,11 @@ def to_c3d(
     Positions are converted from ``result.skeleton.units`` to ``units`` (mm by default, what
     most C3D readers expect); ``POINT:DESCRIPTIONS`` say which points are markers and which
     joints. Frames where a point is not finite are written as NaN with residual -1 (the C3D
-    "invalid" flag); the residual of a valid marker is 0 if some camera detected it, otherwise
-    1 (position imputed by the tracking model), so a reader can tell measured from imputed.
+    "invalid" flag); a valid point has residual 1 if some camera detected it and 0 if only the
+    tracking model placed it (C3D's value for a computed point), the convention of every C3D
+    file acm-rs writes (:data:`acm_rs.gapfill.io.C3D_RESIDUALS`; the file carries the
+    ``ACM_RS:FILLED_RESIDUAL`` parameter, so :func:`acm_rs.gapfill.io.read` reads such
+    points back as filled).
 
     Parameters
     ----------
@@ -55,7 +58,7 @@ def to_c3d(
     """
     import ezc3d
 
-    from ..gapfill.io import set_c3d_frame_count
+    from ..gapfill.io import C3D_RESIDUALS, set_c3d_frame_count
 
     path = Path(path)
     if path.suffix.lower() != ".c3d":
@@ -93,7 +96,10 @@ def to_c3d(
     data[:3] = xyz.transpose(2, 1, 0)
     valid = np.all(np.isfinite(xyz), axis=2).T  # (P, T)
     data[:3, ~valid] = np.nan
-    residuals = np.where(valid, np.where(measured.T, 0.0, 1.0), -1.0)[None]
+    measured_r, filled_r = C3D_RESIDUALS["measured_unknown"], C3D_RESIDUALS["filled"]
+    residuals = np.where(
+        valid, np.where(measured.T, measured_r, filled_r), C3D_RESIDUALS["missing"]
+    )[None]
 
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [float(rate)]
@@ -103,6 +109,7 @@ def to_c3d(
     c["data"]["points"] = data
     c["data"]["meta_points"]["residuals"] = residuals
     c.add_parameter("PROCESSING", "SOFTWARE", "acm-rs")
+    c.add_parameter("ACM_RS", "FILLED_RESIDUAL", [float(filled_r)])
     set_c3d_frame_count(c, n_t)  # recordings over 65535 frames
     with atomic_path(path) as tmp:
         c.write(str(tmp))
