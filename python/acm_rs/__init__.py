@@ -27,7 +27,7 @@ from .learning import LearnedSkeleton, fit_pose, learn_skeleton
 from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
 from .skeleton import BoneLengthConstraint, FKJacobian, Skeleton, SymmetryMap
 from .state import Normalization, StateMap
-from .tracking import PoseResult, track
+from .tracking import OnlineTracker, PoseResult, track
 
 __all__ = [
     "AcmNumericalError",
@@ -39,6 +39,7 @@ __all__ = [
     "LearnedSkeleton",
     "Normalization",
     "PARAM_NAMES",
+    "OnlineTracker",
     "PoseResult",
     "Skeleton",
     "StateMap",

@@ -5,7 +5,8 @@ use super::error::to_py;
 use super::{alloc, cameras_from, norm_from, out, view, Arr, Out, PySkeleton};
 use crate::limits::StateMap;
 use crate::tracking::{
-    moments, EmOptions, FilterStats, Params, SkeletonEmission, Tracker, DEFAULT_RELINEARIZE,
+    moments, EmOptions, FilterStats, OnlineTracker, Params, SkeletonEmission, Tracker,
+    DEFAULT_RELINEARIZE,
 };
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods};
 use pyo3::prelude::*;
@@ -343,4 +344,122 @@ pub(super) fn smooth_bundle(
         s.outcome.converged,
         s.mean_reprojection_px,
     ))
+}
+
+/// The online tracker of one live recording (issue 16): `update` per frame, fixed-lag and
+/// predicted poses.
+#[pyclass(name = "NativeOnlineTracker", module = "acm_rs._native")]
+pub(super) struct PyOnlineTracker {
+    inner: OnlineTracker<SkeletonEmission>,
+    n_cams: usize,
+}
+
+impl PyOnlineTracker {
+    /// Joints and their posterior SD `((J, 3), (J, 3))` of state moments.
+    fn pose<'py>(
+        &self,
+        py: Python<'py>,
+        mean: &[f64],
+        cov: &[f64],
+    ) -> PyResult<(Out<'py>, Out<'py>)> {
+        let (z, c) = self.inner.position(mean, cov);
+        let em = self.inner.emission();
+        let p = py
+            .detach(|| moments::posterior_poses(em, &z, &c))
+            .map_err(to_py)?;
+        let nj = em.skeleton.n_joints();
+        Ok((
+            out(py, p.joints, &[nj, 3])?,
+            out(py, p.joints_std, &[nj, 3])?,
+        ))
+    }
+}
+
+#[pymethods]
+impl PyOnlineTracker {
+    /// Parameters `mu0, v0, vz` of the state of size `order × n_state`, `vx` the diagonal.
+    #[new]
+    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, mu0, v0, vz, vx, order=1, gate=None, relinearize=DEFAULT_RELINEARIZE, lag=0))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        skeleton: &PySkeleton,
+        params: Arr<'_>,
+        lower: Arr<'_>,
+        upper: Arr<'_>,
+        norm: (f64, f64, f64, f64),
+        joint_limits: bool,
+        mu0: Arr<'_>,
+        v0: Arr<'_>,
+        vz: Arr<'_>,
+        vx: Arr<'_>,
+        order: usize,
+        gate: Option<f64>,
+        relinearize: usize,
+        lag: usize,
+    ) -> PyResult<Self> {
+        let sk = skeleton.inner.clone();
+        let cams = cameras_from(&params)?;
+        let n_cams = cams.len();
+        let nb = sk.n_bones();
+        let lo = view(&lower, "lower", &[Some(nb), Some(3)])?;
+        let hi = view(&upper, "upper", &[Some(nb), Some(3)])?;
+        let norm = norm_from(norm.0, norm.1, norm.2, norm.3)?;
+        let map = StateMap::new(nb, lo, hi, &norm, joint_limits).map_err(to_py)?;
+        let ns = order * map.n_state();
+        let n_x = 2 * n_cams * sk.n_markers();
+        let p = Params {
+            mu0: view(&mu0, "mu0", &[Some(ns)])?.to_vec(),
+            v0: view(&v0, "V0", &[Some(ns), Some(ns)])?.to_vec(),
+            vz: view(&vz, "Vz", &[Some(ns), Some(ns)])?.to_vec(),
+            vx: view(&vx, "Vx_diag", &[Some(n_x)])?.to_vec(),
+        };
+        let em = SkeletonEmission::new(sk, cams, map, norm).map_err(to_py)?;
+        let inner = OnlineTracker::new(em, p, order, gate, relinearize, lag).map_err(to_py)?;
+        Ok(Self { inner, n_cams })
+    }
+
+    /// One frame `x (n_cams, M, 2)` in normalised pixels (NaN = missing); the GIL is
+    /// released during the step.
+    fn update(&mut self, py: Python<'_>, x: Arr<'_>) -> PyResult<()> {
+        let m = self.inner.emission().skeleton.n_markers();
+        let xs = view(&x, "x", &[Some(self.n_cams), Some(m), Some(2)])?;
+        let inner = &mut self.inner;
+        py.detach(|| inner.update(xs)).map_err(to_py)
+    }
+
+    /// Joints and SD of the last filtered frame.
+    fn filtered_pose<'py>(&self, py: Python<'py>) -> PyResult<(Out<'py>, Out<'py>)> {
+        let (m, c) = self.inner.filtered();
+        self.pose(py, m, c)
+    }
+
+    /// Joints and SD of frame `t − k` smoothed with the frames up to `t`, and `k`.
+    fn lagged_pose<'py>(&self, py: Python<'py>) -> PyResult<(Out<'py>, Out<'py>, usize)> {
+        let inner = &self.inner;
+        let (m, c, k) = py.detach(|| inner.lagged()).map_err(to_py)?;
+        let (j, s) = self.pose(py, &m, &c)?;
+        Ok((j, s, k))
+    }
+
+    /// Joints and SD predicted `steps` frames after the last filtered frame.
+    fn predicted_pose<'py>(&self, py: Python<'py>, steps: usize) -> PyResult<(Out<'py>, Out<'py>)> {
+        let (m, c) = self.inner.predict(steps);
+        self.pose(py, &m, &c)
+    }
+
+    /// Back to the prior, no frame seen.
+    fn reset(&mut self) {
+        self.inner.reset();
+    }
+
+    /// Frames processed.
+    #[getter]
+    fn frames(&self) -> usize {
+        self.inner.frames()
+    }
+
+    /// Counts over the frames processed (`used`, `gated`, ...).
+    fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        stats_dict(py, &self.inner.stats())
+    }
 }

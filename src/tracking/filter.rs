@@ -58,6 +58,7 @@ pub struct FilterStats {
 }
 
 /// Scratch buffers of the filter (allocated once per pass).
+#[derive(Debug)]
 pub(crate) struct Workspace {
     sigma: Vec<f64>,
     x: Vec<f64>,

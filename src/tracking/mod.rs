@@ -9,6 +9,7 @@
 //! | [`smoother`] | Alg. 8-9 (RTS), eqs. 58-65/79 (transition statistics) |
 //! | [`mstep`] | Alg. 12-13, eqs. 77-87 |
 //! | [`moments`] | posterior of joints and markers (unscented transform of FK) |
+//! | [`online`] | frame-by-frame filter, fixed-lag smoother and prediction (beyond the paper) |
 //! | [`bundle`] | NPZ bundles of the `acm-smooth` binary |
 //!
 //! Memory: the E-step keeps `(T+1)` means and covariances (`8 n² (T+1)` bytes: 2 GB for the
@@ -20,6 +21,7 @@ pub mod filter;
 pub mod model;
 pub mod moments;
 pub mod mstep;
+pub mod online;
 pub mod smoother;
 #[cfg(test)]
 mod tests;
@@ -28,6 +30,7 @@ use crate::error::{ensure_len, AcmError, Result};
 pub use filter::{status, FilterStats};
 pub use model::{Emission, LinearEmission, SkeletonEmission};
 pub use mstep::relative_change;
+pub use online::OnlineTracker;
 use std::time::Instant;
 
 /// Model parameters `Θ = {μ0, V0, V_z, V_x}` (sec. 4.1); `V_x` is diagonal.

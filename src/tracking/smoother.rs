@@ -50,20 +50,7 @@ pub(crate) fn smooth_in_place(
         let (mean_head, mean_tail) = means.split_at_mut((t + 1) * ns);
         let mf = DVector::from_column_slice(&mean_head[t * ns..]);
         let ms_next = DVector::from_column_slice(&mean_tail[..ns]);
-        // Alg. 8 lines 3-6.
-        let fv = f_left(&vf, n); // F Ṽ_t
-        let p = f_right(&fv, n) + &vz;
-        let lp = cholesky(p.as_slice(), ns, &|| {
-            format!("F Ṽ_t Fᵀ + V_z in the smoother at frame {t}")
-        })?;
-        let mut gt = fv; // Gᵀ = P⁻¹ F Ṽ_t (P and Ṽ_t symmetric)
-        chol_solve_mat(&lp, &mut gt);
-        let g = gt.transpose();
-        // Lines 7-8.
-        let fm = f_left(&DMatrix::from_column_slice(ns, 1, mf.as_slice()), n);
-        let ms = &mf + &g * (&ms_next - fm.column(0));
-        let mut vs = &vf + &g * (&vs_next - &p) * &gt;
-        symmetrize(&mut vs);
+        let (ms, vs, gt) = rts_step(&mf, &vf, &ms_next, &vs_next, &vz, n, t)?;
         // Eq. 79 term for the pair (t+1, t).
         let fms = f_left(&DMatrix::from_column_slice(ns, 1, ms.as_slice()), n);
         let d = &ms_next - fms.column(0);
@@ -75,4 +62,35 @@ pub(crate) fn smooth_in_place(
     }
     symmetrize(&mut acc);
     Ok(acc)
+}
+
+/// One backward step of Alg. 8 (lines 3-8) for the transition of
+/// [`super::filter::predict`]: from the filtered `(μ̃_t, Ṽ_t)` and the smoothed
+/// `(μ̂_{t+1}, V̂_{t+1})` to `(μ̂_t, V̂_t, G_tᵀ)`.
+///
+/// # Errors
+/// Numerical error if `F Ṽ_t Fᵀ + V_z` is not positive definite.
+pub(crate) fn rts_step(
+    mf: &DVector<f64>,
+    vf: &DMatrix<f64>,
+    ms_next: &DVector<f64>,
+    vs_next: &DMatrix<f64>,
+    vz: &DMatrix<f64>,
+    n: usize,
+    t: usize,
+) -> Result<(DVector<f64>, DMatrix<f64>, DMatrix<f64>)> {
+    let ns = mf.len();
+    let fv = f_left(vf, n); // F Ṽ_t
+    let p = f_right(&fv, n) + vz;
+    let lp = cholesky(p.as_slice(), ns, &|| {
+        format!("F Ṽ_t Fᵀ + V_z in the smoother at frame {t}")
+    })?;
+    let mut gt = fv; // Gᵀ = P⁻¹ F Ṽ_t (P and Ṽ_t symmetric)
+    chol_solve_mat(&lp, &mut gt);
+    let g = gt.transpose();
+    let fm = f_left(&DMatrix::from_column_slice(ns, 1, mf.as_slice()), n);
+    let ms = mf + &g * (ms_next - fm.column(0));
+    let mut vs = vf + &g * (vs_next - &p) * &gt;
+    symmetrize(&mut vs);
+    Ok((ms, vs, gt))
 }

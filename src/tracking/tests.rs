@@ -516,3 +516,47 @@ fn a_hint_linearises_where_the_prior_is_too_broad() {
     let err = ((m[0] - truth[0]).powi(2) + (m[1] - truth[1]).powi(2)).sqrt();
     assert!(err < 0.01, "hinted posterior {m:?}");
 }
+
+#[test]
+fn online_tracker_equals_the_offline_filter_and_fixed_lag_smoother() {
+    let (em, x, p, n, n_x, t_len) = linear_problem(13);
+    // the filter, frame by frame, equals the offline forward pass
+    let mut off = Tracker::new(em.clone(), x.clone()).unwrap();
+    off.filter(&p, None).unwrap();
+    let lag = 6;
+    let mut on = OnlineTracker::new(em.clone(), p.clone(), 1, None, 10, lag).unwrap();
+    assert!(on.lagged().is_err());
+    for t in 0..t_len {
+        on.update(&x[t * n_x..(t + 1) * n_x]).unwrap();
+        let (m, _) = on.filtered();
+        for (a, b) in m.iter().zip(&off.means()[(t + 1) * n..(t + 2) * n]) {
+            assert!((a - b).abs() < 1e-12, "t={t}");
+        }
+        // fixed lag: the smoother of the recording up to t, at frame t − k
+        if t % 9 == 3 {
+            let (lm, lv, k) = on.lagged().unwrap();
+            assert_eq!(k, lag.min(t));
+            let mut part = Tracker::new(em.clone(), x[..(t + 1) * n_x].to_vec()).unwrap();
+            part.e_step(&p, None).unwrap();
+            let f = t - k + 1;
+            for i in 0..n {
+                assert!(
+                    (lm[i] - part.means()[f * n + i]).abs() < 1e-10,
+                    "lagged t={t}"
+                );
+                assert!((lv[i * n + i] - part.covs()[f * n * n + i * n + i]).abs() < 1e-10);
+            }
+        }
+    }
+    assert_eq!(on.frames(), t_len);
+    assert_eq!(on.stats().used, off.stats().used);
+    // prediction: the random walk keeps the mean and adds V_z per step
+    let (pm, pv) = on.predict(3);
+    let (m, v) = on.filtered();
+    assert_eq!(&pm[..], m);
+    assert!((pv[0] - v[0] - 3.0 * p.vz[0]).abs() < 1e-12);
+    on.reset();
+    assert_eq!(on.frames(), 0);
+    assert!(on.update(&[1.0]).is_err());
+    assert!(OnlineTracker::new(em, p, 3, None, 0, 0).is_err());
+}

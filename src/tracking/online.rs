@@ -1,0 +1,213 @@
+//! The online filter for closed-loop experiments (issue 16, beyond the paper): one step of
+//! Alg. 6 per incoming frame with parameters `Θ` learned offline, optional fixed-lag
+//! smoothing over the last `lag` frames (Alg. 8 on a sliding window) and prediction ahead by a
+//! given latency (the transition of [`super::filter::predict`], no measurement).
+//!
+//! Memory is fixed at construction: the filtered moments of the last `lag + 1` frames in a
+//! ring of preallocated buffers and the filter's workspace.
+
+use super::dense::symmetrize;
+use super::filter::{self, predict, FilterStats, Workspace};
+use super::model::Emission;
+use super::smoother::rts_step;
+use super::Params;
+use crate::error::{ensure_len, AcmError, Result};
+use nalgebra::{DMatrix, DVector};
+
+/// Frame-by-frame tracker with fixed parameters.
+#[derive(Debug)]
+pub struct OnlineTracker<E: Emission> {
+    em: E,
+    params: Params,
+    gate: Option<f64>,
+    relinearize: usize,
+    lag: usize,
+    ns: usize,
+    /// Filtered means / covariances of the last `lag + 1` frames (ring; `head` = newest).
+    means: Vec<Vec<f64>>,
+    covs: Vec<Vec<f64>>,
+    head: usize,
+    /// Frames processed so far.
+    frames: usize,
+    ws: Workspace,
+    mask: Vec<u8>,
+    weights: Vec<f64>,
+    stats: FilterStats,
+}
+
+impl<E: Emission> OnlineTracker<E> {
+    /// A tracker starting from the prior `(μ0, V0)` of `params` (state of size
+    /// `order · n`, see [`super::Tracker::set_order`]) with fixed-lag window `lag` (0: filter
+    /// only).
+    ///
+    /// # Errors
+    /// Invalid parameters or gate; an order other than 1 or 2.
+    pub fn new(
+        em: E,
+        params: Params,
+        order: usize,
+        gate: Option<f64>,
+        relinearize: usize,
+        lag: usize,
+    ) -> Result<Self> {
+        if !(1..=2).contains(&order) {
+            return Err(AcmError::Invalid(format!(
+                "the motion model's order must be 1 or 2, got {order}"
+            )));
+        }
+        if let Some(g) = gate {
+            if g.is_nan() || g <= 0.0 {
+                return Err(AcmError::Invalid(format!("the gate must be > 0, got {g}")));
+            }
+        }
+        let (n, n_x) = (em.n_state(), em.n_meas());
+        let ns = order * n;
+        params.validate(ns, n_x)?;
+        let mut t = Self {
+            means: vec![vec![0.0; ns]; lag + 1],
+            covs: vec![vec![0.0; ns * ns]; lag + 1],
+            head: 0,
+            frames: 0,
+            ws: Workspace::new(n, n_x),
+            mask: vec![0; n_x],
+            weights: vec![1.0; n_x],
+            stats: FilterStats::default(),
+            em,
+            params,
+            gate,
+            relinearize,
+            lag,
+            ns,
+        };
+        t.reset();
+        Ok(t)
+    }
+
+    /// Back to the prior `(μ0, V0)`, no frame seen.
+    pub fn reset(&mut self) {
+        self.head = 0;
+        self.frames = 0;
+        self.means[0].copy_from_slice(&self.params.mu0);
+        self.covs[0].copy_from_slice(&self.params.v0);
+        self.stats = FilterStats::default();
+    }
+
+    /// The emission model.
+    pub fn emission(&self) -> &E {
+        &self.em
+    }
+    /// Frames processed since the start (or [`Self::reset`]).
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+    /// The fixed-lag window.
+    pub fn lag(&self) -> usize {
+        self.lag
+    }
+    /// Counts over all frames processed.
+    pub fn stats(&self) -> FilterStats {
+        self.stats
+    }
+    /// Status of each measurement entry in the last frame (see [`filter::status`]).
+    pub fn mask(&self) -> &[u8] {
+        &self.mask
+    }
+
+    /// One step of Alg. 6 with the measurement `x_t` (`n_x`, NaN = missing).
+    ///
+    /// # Errors
+    /// Shape error; ±inf; numerical errors of the step (the state is then unchanged).
+    pub fn update(&mut self, x_t: &[f64]) -> Result<()> {
+        ensure_len(x_t.len(), self.em.n_meas(), "measurement (n_x)")?;
+        if let Some(i) = x_t.iter().position(|v| v.is_infinite()) {
+            return Err(AcmError::NonFinite(format!(
+                "measurement entry {i} is infinite (use NaN for missing)"
+            )));
+        }
+        // before the first frame the ring holds the prior in slot 0
+        let prev = self.head;
+        let next = if self.frames == 0 {
+            0
+        } else {
+            (self.head + 1) % (self.lag + 1)
+        };
+        let (mu_prev, v_prev) = (self.means[prev].clone(), self.covs[prev].clone());
+        let (mu_out, v_out) = (&mut self.means[next], &mut self.covs[next]);
+        let mut stats = self.stats;
+        filter::step(
+            &self.em,
+            &self.params,
+            &mu_prev,
+            &v_prev,
+            x_t,
+            self.gate,
+            self.relinearize,
+            None,
+            self.frames,
+            &mut self.ws,
+            &mut self.mask,
+            &self.weights,
+            mu_out,
+            v_out,
+            &mut stats,
+        )?;
+        self.stats = stats;
+        self.head = next;
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// The filtered moments `(μ̃_t, Ṽ_t)` of the last frame (state of size `ns`).
+    pub fn filtered(&self) -> (&[f64], &[f64]) {
+        (&self.means[self.head], &self.covs[self.head])
+    }
+
+    /// The fixed-lag smoothed moments of frame `t − k` given the frames up to `t`, with
+    /// `k = min(lag, frames − 1)` (Alg. 8 backwards over the window): `(mean, cov, k)`.
+    ///
+    /// # Errors
+    /// Invalid before the first frame; numerical errors of the smoother.
+    pub fn lagged(&self) -> Result<(Vec<f64>, Vec<f64>, usize)> {
+        if self.frames == 0 {
+            return Err(AcmError::Invalid("no frame processed yet".into()));
+        }
+        let k = self.lag.min(self.frames - 1);
+        let (ns, n) = (self.ns, self.em.n_state());
+        let vz = DMatrix::from_column_slice(ns, ns, &self.params.vz);
+        let mut ms = DVector::from_column_slice(&self.means[self.head]);
+        let mut vs = DMatrix::from_column_slice(ns, ns, &self.covs[self.head]);
+        for back in 1..=k {
+            let slot = (self.head + self.lag + 1 - back) % (self.lag + 1);
+            let mf = DVector::from_column_slice(&self.means[slot]);
+            let vf = DMatrix::from_column_slice(ns, ns, &self.covs[slot]);
+            let (m, v, _) = rts_step(&mf, &vf, &ms, &vs, &vz, n, self.frames - 1 - back)?;
+            ms = m;
+            vs = v;
+        }
+        Ok((ms.as_slice().to_vec(), vs.as_slice().to_vec(), k))
+    }
+
+    /// The prediction `steps` frames ahead of the last filtered frame (no measurement):
+    /// `(mean, cov)` of the state, e.g. to cover the latency of a closed loop.
+    pub fn predict(&self, steps: usize) -> (Vec<f64>, Vec<f64>) {
+        let n = self.em.n_state();
+        let (mut m, mut v) = (self.means[self.head].clone(), self.covs[self.head].clone());
+        for _ in 0..steps {
+            let (pm, mut pv) = predict(&m, &v, &self.params.vz, n);
+            symmetrize(&mut pv);
+            m = pm.as_slice().to_vec();
+            v = pv.as_slice().to_vec();
+        }
+        (m, v)
+    }
+
+    /// The position part `(z, V_zz)` (`n`, `n × n`) of a state's moments.
+    pub fn position(&self, mean: &[f64], cov: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let (n, ns) = (self.em.n_state(), self.ns);
+        let mut c = vec![0.0; n * n];
+        for j in 0..n {
+            c[j * n..(j + 1) * n].copy_from_slice(&cov[j * ns..j * ns + n]);
+        }
+        (mean[..n].to_vec(), c)
+    }
+}
