@@ -114,3 +114,34 @@ def test_online_inputs_are_checked(data):
     online.update(det[:, 0], lik[:, 0])
     online.reset()
     assert online.frames == 0
+
+
+def test_deeplabcut_live_adapter_pairs_cameras_and_maps_bodyparts(data):
+    """Poses arrive per camera, out of step and in DeepLabCut's body-part order: the result
+    equals feeding the tracker the frames directly."""
+    from acm_rs.tracking.live import LiveRig
+
+    sk, rig, det, lik, _, res = data
+    n_t = 12
+    direct = acm_rs.OnlineTracker.from_result(res)
+    want = [direct.update(det[:, t], lik[:, t])[0] for t in range(n_t)]
+    order = np.random.default_rng(0).permutation(sk.n_markers)
+    names = [sk.marker_names[i] for i in order]
+    seen = []
+    live = LiveRig(
+        acm_rs.OnlineTracker.from_result(res), bodyparts=names,
+        on_pose=lambda f, j, s: seen.append((f, j)),
+    )  # fmt: skip
+    procs = [live.processor(c) for c in range(len(rig))]
+    for c, proc in enumerate(procs):  # camera 0 delivers every frame first, then camera 1, ...
+        for t in range(n_t):
+            pose = np.column_stack([det[c, t, order], lik[c, t, order]])
+            assert proc.process(pose) is pose
+        assert len(seen) == (n_t if c == len(rig) - 1 else 0)
+    assert [f for f, _ in seen] == list(range(n_t))
+    for (_, j), w in zip(seen, want, strict=True):
+        np.testing.assert_allclose(j, w, atol=1e-9, equal_nan=True)
+    with pytest.raises(ValueError, match="shape"):
+        procs[0].process(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="not in the rig"):
+        live.processor(9)
