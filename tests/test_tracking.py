@@ -311,3 +311,23 @@ def test_velocity_model_beats_the_random_walk_also_across_a_gap(session, tracked
     assert sd[55] > 5 * np.median(sd[:40])
     with pytest.raises(ValueError, match="motion must be one of"):
         acm_rs.track(rig, sk, det, likelihood=lik, progress=False, motion="spline")
+
+
+def test_ctrl_c_in_the_random_walk_run_reports_the_random_walk(session, monkeypatch):
+    """Interrupted before the velocity model's EM: the result says so and is the random
+    walk's (not labelled velocity)."""
+    import sys
+
+    tr = sys.modules["acm_rs.tracking.track"]
+    sk, rig, _, _, det, lik, _, _ = session
+
+    def ctrl_c(self, iteration, delta, seconds, stats):
+        if iteration == 2:
+            raise KeyboardInterrupt
+        return True
+
+    monkeypatch.setattr(tr._Printer, "__call__", ctrl_c)
+    res = acm_rs.track(rig, sk, det[:, :40], likelihood=lik[:, :40], max_iter=10)
+    assert res.info["interrupted"] and res.info["motion"] == "random_walk"
+    assert "interrupted" in res.info["motion_note"]
+    assert [h["motion"] for h in res.em_history] == ["random_walk"] * 2

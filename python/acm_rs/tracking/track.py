@@ -498,6 +498,8 @@ def track(
         h["motion"] = "random_walk"
     used = "velocity" if motion == "auto" else motion
     motion_note = ""
+    if used == "velocity" and interrupted:
+        used, motion_note = "random_walk", "interrupted before the velocity model's EM"
     if used == "velocity" and not interrupted:
         # EM of the position-velocity model started from the random walk's answer (from
         # the sec. 4.7 start it wanders: docs/tracking.md)
