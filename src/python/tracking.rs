@@ -24,15 +24,39 @@ type EmReturn<'py> = (Bound<'py, PyDict>, Vec<Bound<'py, PyDict>>, bool, bool);
 
 impl PyTracker {
     fn params(&self, p: &ParamArrays<'_>) -> PyResult<Params> {
-        let n = self.inner.n_state();
         let n_x = crate::tracking::Emission::n_meas(self.inner.emission());
-        Ok(Params {
-            mu0: view(&p.0, "mu0", &[Some(n)])?.to_vec(),
-            v0: view(&p.1, "V0", &[Some(n), Some(n)])?.to_vec(),
-            vz: view(&p.2, "Vz", &[Some(n), Some(n)])?.to_vec(),
-            vx: view(&p.3, "Vx_diag", &[Some(n_x)])?.to_vec(),
-        })
+        params_from(p, self.inner.n_state(), n_x)
     }
+}
+
+/// `Θ` from numpy arrays: `mu0 (n,)`, `V0, Vz (n, n)`, `Vx_diag (n_x,)`.
+fn params_from(p: &ParamArrays<'_>, n: usize, n_x: usize) -> PyResult<Params> {
+    Ok(Params {
+        mu0: view(&p.0, "mu0", &[Some(n)])?.to_vec(),
+        v0: view(&p.1, "V0", &[Some(n), Some(n)])?.to_vec(),
+        vz: view(&p.2, "Vz", &[Some(n), Some(n)])?.to_vec(),
+        vx: view(&p.3, "Vx_diag", &[Some(n_x)])?.to_vec(),
+    })
+}
+
+/// The skeleton emission (Alg. 4 ∘ Alg. 10) from the binding's arguments: camera parameters
+/// `(C, 15)`, joint limits `lower, upper (n_bones, 3)`, normalisation `(c_t, c_r, c_1, c_2)`.
+fn emission_from(
+    skeleton: &PySkeleton,
+    params: &Arr<'_>,
+    lower: &Arr<'_>,
+    upper: &Arr<'_>,
+    norm: (f64, f64, f64, f64),
+    joint_limits: bool,
+) -> PyResult<SkeletonEmission> {
+    let sk = skeleton.inner.clone();
+    let cams = cameras_from(params)?;
+    let nb = sk.n_bones();
+    let lo = view(lower, "lower", &[Some(nb), Some(3)])?;
+    let hi = view(upper, "upper", &[Some(nb), Some(3)])?;
+    let norm = norm_from(norm.0, norm.1, norm.2, norm.3)?;
+    let map = StateMap::new(nb, lo, hi, &norm, joint_limits).map_err(to_py)?;
+    SkeletonEmission::new(sk, cams, map, norm).map_err(to_py)
 }
 
 /// Counts of one E-step as a dict (`used`, `gated`, `invisible`, `gate_skipped_frames`).
@@ -78,20 +102,14 @@ impl PyTracker {
         relinearize: usize,
         order: usize,
     ) -> PyResult<Self> {
-        let sk = skeleton.inner.clone();
-        let cams = cameras_from(&params)?;
-        let nb = sk.n_bones();
-        let lo = view(&lower, "lower", &[Some(nb), Some(3)])?;
-        let hi = view(&upper, "upper", &[Some(nb), Some(3)])?;
-        let norm = norm_from(norm.0, norm.1, norm.2, norm.3)?;
-        let map = StateMap::new(nb, lo, hi, &norm, joint_limits).map_err(to_py)?;
-        let xs = view(
-            &x,
-            "x",
-            &[None, Some(cams.len()), Some(sk.n_markers()), Some(2)],
-        )?
-        .to_vec();
-        let em = SkeletonEmission::new(sk, cams, map, norm).map_err(to_py)?;
+        let em = emission_from(skeleton, &params, &lower, &upper, norm, joint_limits)?;
+        let shape = [
+            None,
+            Some(em.cameras.len()),
+            Some(em.skeleton.n_markers()),
+            Some(2),
+        ];
+        let xs = view(&x, "x", &shape)?.to_vec();
         let mut inner = Tracker::new(em, xs).map_err(to_py)?;
         inner.set_relinearize(relinearize);
         inner.set_order(order).map_err(to_py)?;
@@ -397,23 +415,14 @@ impl PyOnlineTracker {
         relinearize: usize,
         lag: usize,
     ) -> PyResult<Self> {
-        let sk = skeleton.inner.clone();
-        let cams = cameras_from(&params)?;
-        let n_cams = cams.len();
-        let nb = sk.n_bones();
-        let lo = view(&lower, "lower", &[Some(nb), Some(3)])?;
-        let hi = view(&upper, "upper", &[Some(nb), Some(3)])?;
-        let norm = norm_from(norm.0, norm.1, norm.2, norm.3)?;
-        let map = StateMap::new(nb, lo, hi, &norm, joint_limits).map_err(to_py)?;
-        let ns = order * map.n_state();
-        let n_x = 2 * n_cams * sk.n_markers();
-        let p = Params {
-            mu0: view(&mu0, "mu0", &[Some(ns)])?.to_vec(),
-            v0: view(&v0, "V0", &[Some(ns), Some(ns)])?.to_vec(),
-            vz: view(&vz, "Vz", &[Some(ns), Some(ns)])?.to_vec(),
-            vx: view(&vx, "Vx_diag", &[Some(n_x)])?.to_vec(),
-        };
-        let em = SkeletonEmission::new(sk, cams, map, norm).map_err(to_py)?;
+        let em = emission_from(skeleton, &params, &lower, &upper, norm, joint_limits)?;
+        let n_cams = em.cameras.len();
+        let ns = order * em.map.n_state();
+        let p = params_from(
+            &(mu0, v0, vz, vx),
+            ns,
+            crate::tracking::Emission::n_meas(&em),
+        )?;
         let inner = OnlineTracker::new(em, p, order, gate, relinearize, lag).map_err(to_py)?;
         Ok(Self { inner, n_cams })
     }

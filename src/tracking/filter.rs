@@ -187,24 +187,21 @@ pub(crate) fn step<E: Emission + ?Sized>(
         // (the other sign of a broad prior, a first update that does not hold, is tested
         // below once that update exists)
         if broad {
+            let prior = (zfull.as_slice(), &l_full);
+            let h = (hm, hv);
             if let Some(up) = hinted_update(
                 em,
-                zfull.as_slice(),
-                &l_full,
+                prior,
                 x_t,
                 &vx_eff,
-                hm,
-                hv,
+                h,
                 relinearize,
                 frame,
                 mask,
                 stats,
                 ws,
             )? {
-                let log_det_vx: f64 = ws.used.iter().map(|&j| vx_eff[j].ln()).sum();
-                stats.log_lik += up.log_lik - 0.5 * log_det_vx;
-                mu_out.copy_from_slice(up.mu.as_slice());
-                v_out.copy_from_slice(up.v.as_slice());
+                finish(&up, &ws.used, &vx_eff, stats, mu_out, v_out);
                 return Ok(());
             }
         }
@@ -257,24 +254,21 @@ pub(crate) fn step<E: Emission + ?Sized>(
             let err = linearisation_error(em, &up, &xhat, &vx_eff, &mut gx, ws)?;
             if err.is_nan() || err > RELIN_THRESHOLD {
                 stats.used -= np;
+                let prior = (zfull.as_slice(), &l_full);
+                let h = (hm, hv);
                 if let Some(better) = hinted_update(
                     em,
-                    zfull.as_slice(),
-                    &l_full,
+                    prior,
                     x_t,
                     &vx_eff,
-                    hm,
-                    hv,
+                    h,
                     relinearize,
                     frame,
                     mask,
                     stats,
                     ws,
                 )? {
-                    let log_det_vx: f64 = ws.used.iter().map(|&j| vx_eff[j].ln()).sum();
-                    stats.log_lik += better.log_lik - 0.5 * log_det_vx;
-                    mu_out.copy_from_slice(better.mu.as_slice());
-                    v_out.copy_from_slice(better.v.as_slice());
+                    finish(&better, &ws.used, &vx_eff, stats, mu_out, v_out);
                     return Ok(());
                 }
                 stats.used += np;
@@ -296,15 +290,27 @@ pub(crate) fn step<E: Emission + ?Sized>(
             stats.relinearized_frames += 1;
         }
     }
-    // ln N(x; x̂, S): `linear_update` leaves out the `ln |V_x|` term
-    let log_det_vx: f64 = ws.used.iter().map(|&j| vx_eff[j].ln()).sum();
-    stats.log_lik += up.log_lik - 0.5 * log_det_vx;
-    mu_out.copy_from_slice(up.mu.as_slice());
-    v_out.copy_from_slice(up.v.as_slice());
+    finish(&up, &ws.used, &vx_eff, stats, mu_out, v_out);
     Ok(())
 }
 
-/// The update of a frame whose prior is too broad for the unscented transform (e.g. after a
+/// Writes an update's moments and adds its `ln N(x; x̂, S)` to the stats (`linear_update`
+/// leaves out the `ln |V_x|` term of the `used` entries).
+fn finish(
+    up: &Update,
+    used: &[usize],
+    vx_eff: &[f64],
+    stats: &mut FilterStats,
+    mu_out: &mut [f64],
+    v_out: &mut [f64],
+) {
+    let log_det_vx: f64 = used.iter().map(|&j| vx_eff[j].ln()).sum();
+    stats.log_lik += up.log_lik - 0.5 * log_det_vx;
+    mu_out.copy_from_slice(up.mu.as_slice());
+    v_out.copy_from_slice(up.v.as_slice());
+}
+
+/// The update of a frame whose prior `(m̄, L̃)` is too broad for the unscented transform (e.g. after a
 /// stretch without detections under the position-velocity model, whose sigma points then
 /// leave the cameras' view): iterated posterior linearisation started from the `hint`
 /// `(μ_h, V_h)` of the position (e.g. the random walk's smoothed posterior of this frame)
@@ -314,12 +320,10 @@ pub(crate) fn step<E: Emission + ?Sized>(
 #[allow(clippy::too_many_arguments)]
 fn hinted_update<E: Emission + ?Sized>(
     em: &E,
-    mbar: &[f64],
-    l_full: &DMatrix<f64>,
+    (mbar, l_full): (&[f64], &DMatrix<f64>),
     x_t: &[f64],
     vx_eff: &[f64],
-    hm: &[f64],
-    hv: &[f64],
+    (hm, hv): (&[f64], &[f64]),
     relinearize: usize,
     frame: usize,
     mask: &mut [u8],

@@ -54,7 +54,8 @@ fn linear_problem(seed: u64) -> (LinearEmission, Vec<f64>, Params, usize, usize,
     (em, x, p, n, n_x, t)
 }
 
-/// Textbook Kalman filter + RTS smoother; returns smoothed (means, covs) for t = 0..T.
+/// Textbook Kalman filter + RTS smoother of the random walk; returns smoothed (means, covs)
+/// for t = 0..T.
 fn kalman_rts(
     em: &LinearEmission,
     x: &[f64],
@@ -63,43 +64,7 @@ fn kalman_rts(
     n_x: usize,
     t_len: usize,
 ) -> (Vec<DVector<f64>>, Vec<DMatrix<f64>>) {
-    let h = DMatrix::from_row_slice(n_x, n, &em.h);
-    let vz = DMatrix::from_row_slice(n, n, &p.vz);
-    let mut mf = vec![DVector::from_column_slice(&p.mu0)];
-    let mut vf = vec![DMatrix::from_row_slice(n, n, &p.v0)];
-    for k in 0..t_len {
-        let mp = mf[k].clone();
-        let pp = &vf[k] + &vz;
-        let idx: Vec<usize> = (0..n_x).filter(|&j| !x[k * n_x + j].is_nan()).collect();
-        if idx.is_empty() {
-            mf.push(mp);
-            vf.push(pp);
-            continue;
-        }
-        let hs = DMatrix::from_fn(idx.len(), n, |a, c| h[(idx[a], c)]);
-        let r = DMatrix::from_fn(idx.len(), idx.len(), |a, c| {
-            if a == c {
-                p.vx[idx[a]]
-            } else {
-                0.0
-            }
-        });
-        let s = &hs * &pp * hs.transpose() + r;
-        let k_gain = &pp * hs.transpose() * s.try_inverse().unwrap();
-        let nu = DVector::from_fn(idx.len(), |a, _| {
-            x[k * n_x + idx[a]] - em.b[idx[a]] - (hs.row(a) * &mp)[0]
-        });
-        mf.push(&mp + &k_gain * nu);
-        vf.push(&pp - &k_gain * &hs * &pp);
-    }
-    let mut ms = mf.clone();
-    let mut vs = vf.clone();
-    for k in (0..t_len).rev() {
-        let pp = &vf[k] + &vz;
-        let g = &vf[k] * pp.clone().try_inverse().unwrap();
-        ms[k] = &mf[k] + &g * (&ms[k + 1] - &mf[k]);
-        vs[k] = &vf[k] + &g * (&vs[k + 1] - &pp) * g.transpose();
-    }
+    let (ms, vs, _) = kalman_rts_order(em, x, p, n, n_x, t_len, 1);
     (ms, vs)
 }
 
@@ -283,19 +248,21 @@ fn student_t_weights_keep_outliers_out_of_the_noise_estimate() {
     );
 }
 
-/// Textbook Kalman filter + RTS smoother for the position–velocity state
-/// `s = (z, ż)`, `F = [[I, I], [0, I]]`, `x = H z + b`; returns the smoothed moments and
+/// Textbook Kalman filter + RTS smoother (covariance form with `S⁻¹`) for the random walk
+/// (`order` 1, `F = I`) or the position–velocity state `s = (z, ż)` (`order` 2,
+/// `F = [[I, I], [0, I]]`), `x = H z + b`; returns the smoothed moments and
 /// `Σ_t E[(s_t − F s_{t-1})(·)ᵀ]` computed from the pairwise covariances.
 #[allow(clippy::type_complexity)]
-fn kalman_rts_velocity(
+fn kalman_rts_order(
     em: &LinearEmission,
     x: &[f64],
     p: &Params,
     n: usize,
     n_x: usize,
     t_len: usize,
+    order: usize,
 ) -> (Vec<DVector<f64>>, Vec<DMatrix<f64>>, DMatrix<f64>) {
-    let ns = 2 * n;
+    let ns = order * n;
     let h0 = DMatrix::from_row_slice(n_x, n, &em.h);
     let h = DMatrix::from_fn(n_x, ns, |r, c| if c < n { h0[(r, c)] } else { 0.0 });
     let f = DMatrix::from_fn(ns, ns, |r, c| {
@@ -368,7 +335,7 @@ fn velocity_state_equals_the_textbook_kalman_smoother() {
         vz: vz.as_slice().to_vec(),
         vx: p1.vx.clone(),
     };
-    let (ms, vs, acc) = kalman_rts_velocity(&em, &x, &p, n, n_x, t_len);
+    let (ms, vs, acc) = kalman_rts_order(&em, &x, &p, n, n_x, t_len, 2);
     let mut tr = Tracker::new(em, x).unwrap();
     tr.set_order(2).unwrap();
     assert_eq!(tr.n_state(), ns);
