@@ -180,6 +180,9 @@ class NativeTracker:
         norm: tuple[float, float, float, float],
         joint_limits: bool,
         x: F64,
+        relinearize: int = 10,
+        order: int = 1,
+        threads: int = 0,
     ) -> None: ...
     @property
     def n_state(self) -> int: ...
@@ -204,6 +207,7 @@ class NativeTracker:
         vx: F64,
         gate: float | None = None,
         smooth: bool = True,
+        statistics: bool = True,
     ) -> dict[str, int]: ...
     def m_step(self, mu0: F64, v0: F64, vz: F64, vx: F64) -> dict[str, F64]: ...
     def means(self) -> F64: ...

@@ -16,6 +16,16 @@ use pyo3::types::PyDict;
 #[pyclass(name = "NativeTracker", module = "acm_rs._native")]
 pub(super) struct PyTracker {
     inner: Tracker<SkeletonEmission>,
+    /// A private pool (`threads > 0`), e.g. 1 thread when windows run in parallel.
+    pool: Option<rayon::ThreadPool>,
+}
+
+/// Runs `f` on `pool` if there is one, else on the caller's (global) pool.
+fn in_pool<R: Send>(pool: &Option<rayon::ThreadPool>, f: impl FnOnce() -> R + Send) -> R {
+    match pool {
+        Some(p) => p.install(f),
+        None => f(),
+    }
 }
 
 type ParamArrays<'py> = (Arr<'py>, Arr<'py>, Arr<'py>, Arr<'py>);
@@ -89,7 +99,9 @@ impl PyTracker {
     /// single unscented update). `order`: 1 = the paper's random walk, 2 = position and
     /// velocity (the parameters `mu0, V0, Vz` then have `2 n_state` rows, position first).
     #[new]
-    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x, relinearize=DEFAULT_RELINEARIZE, order=1))]
+    /// `threads`: run this tracker's work on a private pool of that many threads (0: the
+    /// global pool), e.g. 1 when several trackers run in parallel.
+    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x, relinearize=DEFAULT_RELINEARIZE, order=1, threads=0))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         skeleton: &PySkeleton,
@@ -101,6 +113,7 @@ impl PyTracker {
         x: Arr<'_>,
         relinearize: usize,
         order: usize,
+        threads: usize,
     ) -> PyResult<Self> {
         let em = emission_from(skeleton, &params, &lower, &upper, norm, joint_limits)?;
         let shape = [
@@ -113,7 +126,16 @@ impl PyTracker {
         let mut inner = Tracker::new(em, xs).map_err(to_py)?;
         inner.set_relinearize(relinearize);
         inner.set_order(order).map_err(to_py)?;
-        Ok(Self { inner })
+        let pool = if threads > 0 {
+            let p = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .map_err(|e| pyo3::exceptions::PyRuntimeError::new_err(e.to_string()))?;
+            Some(p)
+        } else {
+            None
+        };
+        Ok(Self { inner, pool })
     }
 
     /// Dimension of the pose state `z` (Alg. 10).
@@ -211,8 +233,9 @@ impl PyTracker {
         ))
     }
 
-    /// One E-step (filter + smoother) with the given parameters → stats dict.
-    #[pyo3(signature = (mu0, v0, vz, vx, gate=None, smooth=true))]
+    /// One E-step (filter + smoother) with the given parameters → stats dict. `smooth=False`:
+    /// the filter only; `statistics=False`: without eq. 79's statistic (no M-step may follow).
+    #[pyo3(signature = (mu0, v0, vz, vx, gate=None, smooth=true, statistics=true))]
     #[allow(clippy::too_many_arguments)]
     fn e_step<'py>(
         &mut self,
@@ -223,16 +246,17 @@ impl PyTracker {
         vx: Arr<'py>,
         gate: Option<f64>,
         smooth: bool,
+        statistics: bool,
     ) -> PyResult<Bound<'py, PyDict>> {
         let p = self.params(&(mu0, v0, vz, vx))?;
-        let inner = &mut self.inner;
+        let (inner, pool) = (&mut self.inner, &self.pool);
         let s = py
             .detach(|| {
-                if smooth {
-                    inner.e_step(&p, gate)
-                } else {
-                    inner.filter(&p, gate)
-                }
+                in_pool(pool, || match (smooth, statistics) {
+                    (false, _) => inner.filter(&p, gate),
+                    (true, true) => inner.e_step(&p, gate),
+                    (true, false) => inner.smooth(&p, gate),
+                })
             })
             .map_err(to_py)?;
         stats_dict(py, &s)
@@ -324,8 +348,9 @@ impl PyTracker {
         let em = self.inner.emission();
         let n = em.map.n_state();
         let (means, covs) = (&self.inner.means()[n..], &self.inner.covs()[n * n..]);
+        let pool = &self.pool;
         let p = py
-            .detach(|| moments::posterior_poses(em, means, covs))
+            .detach(|| in_pool(pool, || moments::posterior_poses(em, means, covs)))
             .map_err(to_py)?;
         let t = self.inner.n_frames();
         let (nj, nm, np) = (

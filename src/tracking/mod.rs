@@ -169,6 +169,8 @@ pub struct Tracker<E: Emission> {
     /// Position moments `(T+1) × n`, `(T+1) × n × n` to linearise about where the prior is
     /// too broad (see [`Self::set_linearization_hint`]).
     hint: Option<(Vec<f64>, Vec<f64>)>,
+    /// Whether `acc` holds the statistic of the last smoother pass.
+    has_statistics: bool,
 }
 
 /// Default maximum number of iterated posterior linearisations per frame (see
@@ -217,6 +219,7 @@ impl<E: Emission> Tracker<E> {
             zmeans: Vec::new(),
             zcovs: Vec::new(),
             hint: None,
+            has_statistics: false,
         })
     }
 
@@ -396,9 +399,35 @@ impl<E: Emission> Tracker<E> {
     /// # Errors
     /// As [`Self::filter`].
     pub fn e_step(&mut self, params: &Params, gate: Option<f64>) -> Result<FilterStats> {
+        self.filter_smooth(params, gate, true)
+    }
+
+    /// Filter and smoother with fixed parameters: [`Self::e_step`] without the transition
+    /// statistic of eq. 79 (about a third of the smoother's work), so no M-step may follow.
+    ///
+    /// # Errors
+    /// As [`Self::filter`].
+    pub fn smooth(&mut self, params: &Params, gate: Option<f64>) -> Result<FilterStats> {
+        self.filter_smooth(params, gate, false)
+    }
+
+    fn filter_smooth(
+        &mut self,
+        params: &Params,
+        gate: Option<f64>,
+        statistics: bool,
+    ) -> Result<FilterStats> {
         let stats = self.filter(params, gate)?;
         let (ns, n) = (self.n_state(), self.em.n_state());
-        self.acc = smoother::smooth_in_place(&mut self.means, &mut self.covs, &params.vz, ns, n)?;
+        self.acc = smoother::smooth_in_place(
+            &mut self.means,
+            &mut self.covs,
+            &params.vz,
+            ns,
+            n,
+            statistics,
+        )?;
+        self.has_statistics = statistics;
         self.extract_positions();
         Ok(stats)
     }
@@ -408,6 +437,11 @@ impl<E: Emission> Tracker<E> {
     /// # Errors
     /// Numerical errors for a smoothed covariance that is not positive semi-definite.
     pub fn m_step(&self, prev: &Params) -> Result<Params> {
+        if !self.has_statistics {
+            return Err(AcmError::Invalid(
+                "the M-step needs an E-step with statistics (not smooth())".into(),
+            ));
+        }
         let p = mstep::m_step(
             &self.em,
             self.means(),

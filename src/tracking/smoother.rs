@@ -28,6 +28,9 @@ use nalgebra::{DMatrix, DVector};
 /// `d = μ̂_{t+1} − F μ̂_t`, `C = V̂_{t+1} G_tᵀ` (eq. 59):
 /// `E[(s_{t+1} − F s_t)(·)ᵀ] = d dᵀ + V̂_{t+1} − C Fᵀ − F Cᵀ + F V̂_t Fᵀ`.
 ///
+/// With `statistics = false` (smoothing with fixed parameters) the statistic is not
+/// accumulated and the returned matrix is zero.
+///
 /// # Errors
 /// Numerical error if some `F Ṽ_t Fᵀ + V_z` is not positive definite.
 pub(crate) fn smooth_in_place(
@@ -36,6 +39,7 @@ pub(crate) fn smooth_in_place(
     vz: &[f64],
     ns: usize,
     n: usize,
+    statistics: bool,
 ) -> Result<DMatrix<f64>> {
     let steps = means.len() / ns;
     let mut acc = DMatrix::zeros(ns, ns);
@@ -51,6 +55,11 @@ pub(crate) fn smooth_in_place(
         let mf = DVector::from_column_slice(&mean_head[t * ns..]);
         let ms_next = DVector::from_column_slice(&mean_tail[..ns]);
         let (ms, vs, gt) = rts_step(&mf, &vf, &ms_next, &vs_next, &vz, n, t)?;
+        if !statistics {
+            mean_head[t * ns..].copy_from_slice(ms.as_slice());
+            cov_head[t * ns * ns..].copy_from_slice(vs.as_slice());
+            continue;
+        }
         // Eq. 79 term for the pair (t+1, t).
         let fms = f_left(&DMatrix::from_column_slice(ns, 1, ms.as_slice()), n);
         let d = &ms_next - fms.column(0);

@@ -527,3 +527,17 @@ fn online_tracker_equals_the_offline_filter_and_fixed_lag_smoother() {
     assert!(on.update(&[1.0]).is_err());
     assert!(OnlineTracker::new(em, p, 3, None, 0, 0).is_err());
 }
+
+#[test]
+fn smoothing_without_statistics_gives_the_same_moments_and_refuses_an_m_step() {
+    let (em, x, p, ..) = linear_problem(5);
+    let mut full = Tracker::new(em.clone(), x.clone()).unwrap();
+    full.e_step(&p, None).unwrap();
+    let mut fast = Tracker::new(em, x).unwrap();
+    fast.smooth(&p, None).unwrap();
+    assert_eq!(full.means(), fast.means());
+    assert_eq!(full.covs(), fast.covs());
+    assert!(full.m_step(&p).is_ok());
+    let err = fast.m_step(&p).unwrap_err().to_string();
+    assert!(err.contains("statistics"), "{err}");
+}
