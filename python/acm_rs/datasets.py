@@ -117,13 +117,16 @@ def smooth_motion(
     speed: float = 1.0,
     arena: float = 8.0,
     height: float = 6.0,
+    start: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """A smooth behaviour sequence within the joint limits (arena frame, z up).
 
     Every free rotation entry follows a sum of three sinusoids in the erf state space of
     Alg. 10 (so limits always hold), the heading turns slowly and the body wanders on a
     smooth path within ``+-arena``. ``speed`` scales all frequencies (1.0: periods of
-    roughly 40-200 frames, i.e. natural movement at 100 Hz when ``dt = 1``).
+    roughly 40-200 frames, i.e. natural movement at 100 Hz when ``dt = 1``). ``start``: the
+    first frame's index, so that blocks ``[a, b)`` of one long sequence (same seed) can be
+    generated one at a time and join without a jump.
 
     Returns
     -------
@@ -134,7 +137,7 @@ def smooth_motion(
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
     rng = np.random.default_rng(seed)
     sm = skeleton.state_map()
-    k = np.arange(n_frames, dtype=float)[:, None]
+    k = np.arange(start, start + n_frames, dtype=float)[:, None]
 
     def wave(n_series: int) -> np.ndarray:
         out = np.zeros((n_frames, n_series))

@@ -150,6 +150,23 @@ class Skeleton:
         for arr in (self._parents, self._marker_joints, self._joint_limits, self._marker_bounds):
             arr.setflags(write=False)
 
+    def __getstate__(self) -> dict:
+        """Pickle support (e.g. to send a skeleton to Dask workers): the Python attributes
+        and the native skeleton's arrays, bit for bit."""
+        state = {k: v for k, v in self.__dict__.items() if k != "_native"}
+        state["_native_args"] = (
+            self._native.rest_frames, self._native.lengths, self._native.offsets,
+        )  # fmt: skip
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        rest_frames, lengths, offsets = state.pop("_native_args")
+        self.__dict__.update(state)
+        self._native = _native.NativeSkeleton(
+            self._parents, np.ascontiguousarray(rest_frames), np.ascontiguousarray(lengths),
+            self._marker_joints, np.ascontiguousarray(offsets),
+        )  # fmt: skip
+
     # -- construction -----------------------------------------------------------------------
     @classmethod
     def from_rest_pose(
