@@ -27,7 +27,7 @@ from .learning import LearnedSkeleton, fit_pose, learn_skeleton
 from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
 from .skeleton import BoneLengthConstraint, FKJacobian, Skeleton, SymmetryMap
 from .state import Normalization, StateMap
-from .tracking import OnlineTracker, PoseResult, track
+from .tracking import OnlineTracker, PoseResult, read_chunked, track, track_long
 
 __all__ = [
     "AcmNumericalError",
@@ -59,8 +59,10 @@ __all__ = [
     "pipeline",
     "plots",
     "project",
+    "read_chunked",
     "rodrigues",
     "rodrigues_inverse",
     "rodrigues_jacobian",
     "track",
+    "track_long",
 ]

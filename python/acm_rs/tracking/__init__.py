@@ -1,6 +1,7 @@
 """Probabilistic pose estimation (ACM supp. sec. 4): :func:`track` and :class:`PoseResult`."""
 
 from .bundle import read_smoothed, smooth_bundle, write_bundle
+from .long import read_chunked, track_long
 from .online import OnlineTracker
 from .result import PoseResult
 from .track import DEFAULT_GATE, default_normalization, gate_threshold, track
@@ -11,8 +12,10 @@ __all__ = [
     "PoseResult",
     "default_normalization",
     "gate_threshold",
+    "read_chunked",
     "read_smoothed",
     "smooth_bundle",
     "track",
+    "track_long",
     "write_bundle",
 ]

@@ -109,6 +109,54 @@ def _cmd_track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_track_long(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .._io import check_output_path
+    from ..camera import CameraRig
+    from ..dlc import read_labels
+    from ..models import load_name_or_file
+    from ..project import rig_for_files
+    from .long import track_long
+
+    out = check_output_path(args.output, args.overwrite, "poses file")
+    if bool(args.dlc) == bool(args.npy):
+        raise ValueError("give either --dlc files (one per camera) or --npy DETECTIONS.npy")
+    skeleton = load_name_or_file(args.skeleton)
+    names = None
+    if args.npy:
+        # memory-mapped: read one window at a time (bounded memory)
+        points = np.load(args.npy, mmap_mode="r")
+        lik = np.load(args.likelihood, mmap_mode="r") if args.likelihood else None
+        rig = CameraRig.load(args.calibration, names=args.camera_names)
+    else:
+        rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names)
+        if table:
+            print("acm-rs track-long: cameras matched by the names in the files:\n  "
+                  + table.replace("\n", "\n  "))  # fmt: skip
+        ls = read_labels(args.dlc, individual=args.individual)
+        points, lik, names = ls.points, ls.likelihood, ls.bodyparts
+    print(
+        f"acm-rs track-long: {skeleton.name}, {len(rig)} cameras, {points.shape[1]} frames; "
+        f"EM on {args.windows} windows of {args.subset // args.windows} frames, then chunks "
+        f"of {args.chunk} (+{args.burn_in} burn-in) on "
+        f"{args.scheduler or f'{args.workers} threads'}"
+    )
+    info = track_long(
+        rig, skeleton, points, out, likelihood=lik, pcutoff=args.pcutoff, marker_names=names,
+        joint_limits=not args.no_limits, motion=args.motion, subset=args.subset,
+        n_windows=args.windows, chunk=args.chunk, burn_in=args.burn_in, tol=args.seam_tol,
+        gate=None if args.no_gate else args.gate, client=args.scheduler, workers=args.workers,
+        overwrite=args.overwrite, progress=None,
+    )  # fmt: skip
+    print(
+        f"  {info['motion']}, {len(info['em_history'])} EM iterations ({info['seconds_em']:.0f} s);"
+        f" smoothing {info['seconds_smoothing']:.0f} s; largest seam difference "
+        f"{info['seam_difference_max']:.3g} SD\n  wrote {info['path']}"
+    )
+    return 0
+
+
 FORMATS = ("anipose", "nwb", "c3d", "npz", "movement")
 
 
@@ -254,6 +302,54 @@ def add_subcommands(sub) -> None:
             a, "track", _cmd_track, ("--calibration", "--dlc", "--output")
         )
     )
+
+    t = sub.add_parser(
+        "track-long",
+        help="track a recording of any length in bounded memory (EM on a subset, chunked "
+        "smoother, HDF5 output; threads or a Dask cluster)",
+        description="Issue 16: learns the model by EM on evenly spread windows, then smooths "
+        "the whole recording in chunks with overlapping burn-in whose seams are checked, "
+        "writing OUT.h5 chunk by chunk (docs/tracking.md, 'Long recordings').",
+    )
+    t.add_argument("--calibration", required=True, help="anipose calibration.toml")
+    t.add_argument("--camera-names", nargs="+", help="calibrated camera names in input order")
+    t.add_argument(
+        "--skeleton", default="rat", help="learned skeleton TOML (acm-rs learn) or a model name"
+    )
+    t.add_argument(
+        "--dlc", nargs="+",
+        help="2D poses, one file per camera (read whole: for bounded memory use --npy)",
+    )  # fmt: skip
+    t.add_argument(
+        "--npy",
+        help="detections (n_cams, T, n_markers, 2) in pixels, skeleton marker order, NaN "
+        "missing; memory-mapped",
+    )  # fmt: skip
+    t.add_argument("--likelihood", help="likelihoods (n_cams, T, n_markers) .npy for --npy")
+    t.add_argument("--individual", help="individual in multi-animal files")
+    t.add_argument("--pcutoff", type=float, default=0.9, help="likelihood cutoff (0.9)")
+    t.add_argument("--gate", type=float, default=0.999, help="outlier gate probability (0.999)")
+    t.add_argument("--no-gate", action="store_true", help="use every confident detection")
+    t.add_argument("--no-limits", action="store_true", help="do not enforce joint-angle limits")
+    t.add_argument(
+        "--motion", choices=["auto", "velocity", "random_walk"], default="auto",
+        help="motion model (as acm-rs track)",
+    )  # fmt: skip
+    t.add_argument("--subset", type=int, default=20000, help="frames for EM (20000)")
+    t.add_argument("--windows", type=int, default=10, help="EM windows, evenly spread (10)")
+    t.add_argument("--chunk", type=int, default=2000, help="frames per chunk (2000)")
+    t.add_argument("--burn-in", type=int, default=100,
+                   help="extra frames on each side of a chunk (100)")  # fmt: skip
+    t.add_argument(
+        "--seam-tol", type=float, default=0.05,
+        help="largest seam difference between chunks in posterior SDs before the burn-in "
+        "is doubled (0.05)",
+    )  # fmt: skip
+    t.add_argument("--workers", type=int, default=2, help="threads without --scheduler (2)")
+    t.add_argument("--scheduler", help="address of a running Dask scheduler (tcp://host:8786)")
+    t.add_argument("-o", "--output", required=True, help="output HDF5 file, e.g. poses.h5")
+    t.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    t.set_defaults(func=_cmd_track_long)
 
     e = sub.add_parser("export", help="convert a tracking result (.npz) to other formats")
     e.add_argument("input", nargs="?", help="result written by acm-rs track (OUT.npz)")

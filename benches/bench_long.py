@@ -1,0 +1,124 @@
+"""Long recordings (issue 16 items 1-2): EM on a subset of windows + the chunked smoother,
+input from a memory-mapped file, output to HDF5; frames/s, peak RSS, and (optionally) the
+difference to the smoother of the whole recording with the same parameters.
+
+    python benches/bench_long.py [--frames 40000] [--subset 20000] [--windows 10]
+                                 [--chunk 2000] [--burn-in 100] [--exact]
+
+The synthetic rat (4 cameras, DeepLabCut-like detections with 15 % missing and 1 % confident
+outliers, one camera out for 5 % of the recording) is generated in blocks straight into a
+``.npy`` memmap, so the input never sits in memory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import resource
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import acm_rs
+from acm_rs import datasets, models
+from acm_rs.demo import demo_rig
+from acm_rs.tracking import long as L
+
+
+def make_recording(folder: Path, sk, rig, n: int, block: int = 5000):
+    """Detections/likelihoods/truth memmaps of ``n`` frames, generated block by block."""
+    c, m = len(rig), sk.n_markers
+    det = np.lib.format.open_memmap(folder / "det.npy", "w+", np.float32, (c, n, m, 2))
+    lik = np.lib.format.open_memmap(folder / "lik.npy", "w+", np.float32, (c, n, m))
+    truth = np.lib.format.open_memmap(folder / "truth.npy", "w+", np.float32, (n, sk.n_joints, 3))
+    for k, a in enumerate(range(0, n, block)):
+        b = min(n, a + block)
+        t, r = datasets.smooth_motion(sk, b - a, seed=100, start=a)  # one sequence
+        d, lk = datasets.dlc_like_detections(
+            rig, sk, t, r, missing=0.15, outliers=0.01, seed=200 + k
+        )
+        det[:, a:b], lik[:, a:b] = d, lk
+        truth[a:b] = sk.forward(t, r)[0]
+    out = slice(n // 2, n // 2 + n // 20)
+    det[1, out] = np.nan  # one camera out for 5 % of the recording
+    for arr in (det, lik, truth):
+        arr.flush()
+    return (np.load(folder / f, mmap_mode="r") for f in ("det.npy", "lik.npy", "truth.npy"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=40_000)
+    ap.add_argument("--subset", type=int, default=L.DEFAULT_SUBSET)
+    ap.add_argument("--windows", type=int, default=L.DEFAULT_WINDOWS)
+    ap.add_argument("--chunk", type=int, default=L.DEFAULT_CHUNK)
+    ap.add_argument("--burn-in", type=int, default=L.DEFAULT_BURN_IN)
+    ap.add_argument("--motion", default="auto", choices=["auto", "velocity", "random_walk"])
+    ap.add_argument("--exact", action="store_true", help="also the whole-recording smoother")
+    ap.add_argument("--keep", help="keep the inputs and outputs in this folder")
+    args = ap.parse_args(argv)
+    warnings.simplefilter("default")
+    sk = datasets.individual_skeleton(models.rat(), seed=1)
+    rig = demo_rig()
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(args.keep or tmp)
+        folder.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        det, lik, truth = make_recording(folder, sk, rig, args.frames)
+        print(f"generated {args.frames} frames in {time.perf_counter() - t0:.0f} s (memmap)")
+        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        t0 = time.perf_counter()
+        info = acm_rs.track_long(
+            rig, sk, det, folder / "poses.h5", likelihood=lik, subset=args.subset,
+            n_windows=args.windows, chunk=args.chunk, burn_in=args.burn_in,
+            motion=args.motion, overwrite=True,
+        )  # fmt: skip
+        total = time.perf_counter() - t0
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        res = acm_rs.read_chunked(folder / "poses.h5")
+        err = np.linalg.norm(res["joints"] - truth, axis=-1) * 10  # mm
+        smooth_s = info["seconds_smoothing"]
+        print(
+            f"motion {info['motion']}, EM {len(info['em_history'])} iterations on "
+            f"{len(info['em_windows'])} windows: {info['seconds_em']:.0f} s; smoothing "
+            f"{smooth_s:.0f} s = {args.frames / smooth_s:.0f} frames/s "
+            f"({info['windows_recomputed']} windows recomputed); total {total:.0f} s"
+        )
+        print(
+            f"peak RSS {rss:.0f} MB (before tracking {rss0:.0f} MB); joints mean "
+            f"{np.nanmean(err):.3f} mm, median {np.nanmedian(err):.3f} mm; seam difference max "
+            f"{info['seam_difference_max']:.4f} SD, median "
+            f"{np.median(res['seam_difference']):.4f} SD"
+        )
+        if args.exact:
+            p = dict(res["params"])
+            rw = {k[3:]: p.pop(k) for k in list(p) if k.startswith("rw_")}
+            pc, rpc = p.pop("window_prior_cov"), rw.pop("window_prior_cov", None)
+            from acm_rs.tracking.track import DEFAULT_GATE, gate_threshold
+
+            model = L._Model(
+                rig, sk, acm_rs.tracking.default_normalization(rig, sk), True, 10,
+                gate_threshold(DEFAULT_GATE), 2 if info["motion"] == "velocity" else 1, p, pc,
+                0.9, None, rw or None, rpc,
+            )  # fmt: skip
+            t0 = time.perf_counter()
+            (folder / "exact.h5").unlink(missing_ok=True)
+            L.smooth_chunked(model, L._Source(det, lik), folder / "exact.h5", chunk=args.frames)
+            ex = acm_rs.read_chunked(folder / "exact.h5")
+            rel = np.abs(ex["joints"] - res["joints"]) / ex["joints_std"]
+            e2 = np.linalg.norm(ex["joints"] - truth, axis=-1) * 10
+            print(
+                f"whole-recording smoother ({time.perf_counter() - t0:.0f} s): joints mean "
+                f"{np.nanmean(e2):.3f} mm; chunked - whole: max {np.nanmax(rel):.4f} SD, "
+                f"99.9th percentile {np.nanpercentile(rel, 99.9):.4f} SD, frames with a joint "
+                f"> 1 % SD: {np.mean(np.nanmax(rel, axis=(1, 2)) > 0.01) * 100:.2f} %"
+            )
+    print(f"machine: {platform.machine()}, {platform.python_version()}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,800 @@
+"""Hour-long recordings in bounded memory (issue 16 items 1-2; beyond the paper).
+
+Two steps, each with memory that does not grow with the recording's length ``T``:
+
+1. **Θ by EM on a subset** (:func:`learn_windows`): ``n_windows`` evenly spread windows of
+   the recording (default 10 × 2,000 frames), treated as independent sequences of one model:
+   each window has its own ``μ0, V0`` (eqs. 77-78 per window), ``V_z`` and ``V_x`` are
+   shared (eq. 79 summed over the windows' transitions, eq. 81 over their measurements).
+   Evenly spread windows see the animal's whole range of behaviour (one contiguous block
+   would see one bout); joining them into one sequence would make every join a jump that
+   inflates ``V_z``. The motion model is chosen as in :func:`acm_rs.track`.
+
+2. **Smoothing with Θ fixed, in chunks** (:func:`smooth_chunked`): the recording is cut into
+   cores of ``chunk`` frames; each core is filtered and smoothed (Alg. 7 + 9) over a window
+   extended by ``burn_in`` frames on both sides, starting from the single-frame fit (sec. 4.7)
+   of the window's first frame with a broad prior. The filter forgets that start and the
+   smoother the window's end within a few frames of detections, so the cores equal the
+   smoother of the whole recording up to a small difference — which is **checked**, not
+   assumed: neighbouring windows overlap, and at each seam their estimates of the two frames
+   either side must agree within ``tol`` of the posterior SD (default 5 %); where they do not
+   (a stretch without detections across the seam), both windows are recomputed with twice
+   the burn-in, up to ``max_burn_in`` and while each doubling at least halves the
+   difference, and a seam that still disagrees is reported
+   (``info["seams_disagreeing"]``, a warning). Cores are independent: they run in parallel
+   on a thread pool or on a Dask cluster (``client``) with identical results, and are
+   written to an HDF5 file in order as they are done (atomically: a temporary file renamed
+   at the end).
+
+Memory: the inputs are read one window at a time, so ``detections`` may be a
+``numpy.memmap``, an ``h5py`` or ``zarr`` array (anything sliced as ``a[:, t0:t1]``); each
+window in flight holds ``(chunk + 2 burn_in) · (order · n)² · 8`` bytes of moments (176 MB for
+the rat's velocity state and the defaults).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import _native
+from .._io import check_output_path, new_file_mode
+from .._version import __version__
+from ..camera import CameraRig
+from ..labels import labels_in_skeleton_order, mask_by_likelihood
+from ..learning import check_scale, check_units
+from ..skeleton import Skeleton
+from ..state import Normalization, StateMap
+from .track import (
+    DEFAULT_GATE,
+    DEFAULT_LL_TOL,
+    DEFAULT_MOTION,
+    MOTION_ORDER,
+    _first_pose,
+    _norm_dict,
+    _on_terminal,
+    _Printer,
+    _velocity_init,
+    _velocity_worse,
+    check_camera_order,
+    default_normalization,
+    gate_threshold,
+)
+
+#: Frames per core of :func:`smooth_chunked`.
+DEFAULT_CHUNK = 2000
+#: Frames of burn-in on each side of a core (measured: docs/tracking.md, "Long recordings").
+DEFAULT_BURN_IN = 100
+#: Frames of the EM subset and number of windows it is spread over.
+DEFAULT_SUBSET = 20000
+DEFAULT_WINDOWS = 10
+#: Largest seam difference between neighbouring windows, in posterior SDs.
+DEFAULT_TOL = 0.05
+
+_USED = 1  # filter.rs status::USED
+#: Windows with this many consecutive frames without detections get the random walk's
+#: linearisation hint under the velocity model.
+HINT_GAP = 5
+
+
+def subset_windows(
+    n_frames: int, subset: int = DEFAULT_SUBSET, n_windows: int = DEFAULT_WINDOWS
+) -> list[tuple[int, int]]:
+    """``n_windows`` evenly spread frame ranges ``[(start, stop)]`` of ``subset // n_windows``
+    frames each, the first starting at frame 0 and the last ending at ``n_frames``; the whole
+    recording as one window if it has at most ``subset`` frames."""
+    if n_frames < 1:
+        raise ValueError(f"the recording has no frames (n_frames = {n_frames})")
+    if subset < 2 or n_windows < 1:
+        raise ValueError(f"subset must be >= 2 and n_windows >= 1, got {subset}, {n_windows}")
+    if n_frames <= subset:
+        return [(0, n_frames)]
+    length = max(2, subset // n_windows)
+    starts = np.linspace(0, n_frames - length, n_windows).round().astype(int)
+    return [(int(s), int(s) + length) for s in np.unique(starts)]
+
+
+@dataclass
+class _Model:
+    """Everything a worker needs to smooth one window (picklable for Dask)."""
+
+    rig: CameraRig
+    skeleton: Skeleton
+    norm: Normalization
+    joint_limits: bool
+    relinearize: int
+    gate: float | None  # the chi-square threshold, not the probability
+    order: int
+    params: dict
+    prior_cov: np.ndarray  # V0 of every window's start (order·n square)
+    pcutoff: float
+    marker_names: Sequence[str] | None = None
+    #: Θ and window prior of the random walk, for the linearisation hint of the velocity
+    #: model in windows with a stretch without detections (None for the random walk).
+    rw_params: dict | None = None
+    rw_prior_cov: np.ndarray | None = None
+
+    #: Threads of each window's tracker (1: windows run in parallel instead).
+    threads: int = 1
+
+    def tracker(self, x: np.ndarray, order: int | None = None):
+        lim = self.skeleton.joint_limits
+        return _native.NativeTracker(
+            self.skeleton._native, self.rig.get_params(), np.ascontiguousarray(lim[..., 0]),
+            np.ascontiguousarray(lim[..., 1]), self.norm._tuple(), bool(self.joint_limits),
+            np.ascontiguousarray(x), relinearize=int(self.relinearize), order=order or self.order,
+            threads=int(self.threads),
+        )  # fmt: skip
+
+    def detections(self, det: np.ndarray, lik: np.ndarray | None) -> np.ndarray:
+        """Raw window ``(C, W, K, 2)`` → skeleton order, below-cutoff and partial points NaN."""
+        masked = mask_by_likelihood(det, lik, self.pcutoff)
+        out = labels_in_skeleton_order(masked, self.skeleton, self.rig, self.marker_names).copy()
+        out[~np.isfinite(out).all(axis=-1)] = np.nan
+        return out
+
+
+def _normalized(norm: Normalization, det: np.ndarray) -> np.ndarray:
+    return norm.normalize_pixels(det).transpose(1, 0, 2, 3)  # (W, C, M, 2)
+
+
+def _window_prior(model: _Model, det: np.ndarray) -> np.ndarray | None:
+    """Prior mean of a window's start: the sec. 4.7 fit of its first frame with >= 3 points
+    seen by >= 2 cameras (velocity 0); None if no frame qualifies."""
+    try:
+        _, t0, r0 = _first_pose(model.rig, model.skeleton, det, model.norm)
+    except ValueError:
+        return None
+    sm = StateMap(model.skeleton, model.norm, model.joint_limits)
+    mu = sm.from_pose(t0, r0)
+    return np.concatenate([mu, np.zeros(mu.size * (model.order - 1))])
+
+
+def _has_empty_stretch(det: np.ndarray, min_len: int) -> bool:
+    """Whether ``det (C, W, M, 2)`` has ``min_len`` consecutive frames without detections."""
+    empty = ~np.isfinite(det[..., 0]).any(axis=(0, 2))
+    run = 0
+    for e in empty:
+        run = run + 1 if e else 0
+        if run >= min_len:
+            return True
+    return False
+
+
+def smooth_window(model: _Model, det_raw: np.ndarray, lik_raw: np.ndarray | None) -> dict | None:
+    """Filter and smooth one window with the fixed parameters (Alg. 7 + 9) from its own
+    prior; the posterior of every frame of the window (arrays with the window's frames on
+    the first axis; ``status`` is ``(C, W, M)``), or None if no frame of the window has
+    enough detections to start from."""
+    det = model.detections(det_raw, lik_raw)
+    mu0 = _window_prior(model, det)
+    if mu0 is None:
+        return None
+    x = _normalized(model.norm, det)
+    native = model.tracker(x)
+    if model.order == 2 and model.rw_params is not None and _has_empty_stretch(det, HINT_GAP):
+        # after a stretch without detections the velocity's prior is too broad: linearise
+        # about the random walk's posterior there (as acm_rs.track does)
+        rw, q = model.tracker(x, order=1), model.rw_params
+        n = len(q["mu0"])
+        rw.e_step(mu0[:n], model.rw_prior_cov, q["Vz"], q["Vx_diag"], model.gate,
+                  statistics=False)  # fmt: skip
+        native.set_linearization_hint(rw.means(), rw.covs())
+    p = model.params
+    stats = native.e_step(mu0, model.prior_cov, p["Vz"], p["Vx_diag"], model.gate,
+                          statistics=False)  # fmt: skip
+    poses, joints, markers, joints_std, markers_std = native.posterior()
+    status = native.mask()[..., 0].transpose(1, 0, 2)  # (C, W, M)
+    return {
+        "joints": joints, "joints_std": joints_std, "markers": markers,
+        "markers_std": markers_std, "poses": poses, "status": status,
+        "stats": {k: float(v) for k, v in stats.items()},
+    }  # fmt: skip
+
+
+# -- EM on a subset of windows ----------------------------------------------------------------
+
+
+def _combine(new: list[dict], frames: list[int], counts: list[np.ndarray], prev_vx) -> tuple:
+    """Shared ``V_z`` (eq. 79 over all windows' transitions) and ``V_x`` (eq. 81 over all
+    windows' used entries) from the per-window M-steps."""
+    w = np.asarray(frames, dtype=float)
+    vz = sum(wk * p["Vz"] for wk, p in zip(w, new, strict=True)) / w.sum()
+    c = np.sum(counts, axis=0)
+    s = sum(ck * p["Vx_diag"] for ck, p in zip(counts, new, strict=True))
+    vx = np.where(c > 0, s / np.maximum(c, 1), prev_vx)
+    return 0.5 * (vz + vz.T), vx
+
+
+def _em_windows(
+    trackers: list, inits: list[tuple], max_iter: int, ll_tol: float, gate: float | None,
+    pool: ThreadPoolExecutor, printer: Callable,
+) -> tuple[list[tuple], list[dict], bool]:  # fmt: skip
+    """Alg. 11 over independent windows (one ``NativeTracker`` each, E-steps in parallel);
+    stops when the summed marginal log-likelihood gains less than ``ll_tol`` nats per used
+    entry. Ends with an E-step under the returned per-window parameters."""
+    params = list(inits)
+    history: list[dict] = []
+    converged = False
+    frames = [tr.n_frames for tr in trackers]
+    for it in range(1, max_iter + 1):
+        t0 = time.perf_counter()
+        stats = list(pool.map(lambda tr, p: tr.e_step(*p, gate), trackers, params))
+        new = [tr.m_step(*p) for tr, p in zip(trackers, params, strict=True)]
+        counts = [(tr.mask() == _USED).sum(axis=0).ravel() for tr in trackers]
+        vz, vx = _combine(new, frames, counts, params[0][3])
+        nxt = [(p["mu0"], p["V0"], vz, vx) for p in new]
+        # Alg. 13's measure over the shared parameters (diag V_z, V_x)
+        prev = np.concatenate([params[0][2].diagonal(), params[0][3]])
+        delta = float(np.mean(np.abs(np.concatenate([vz.diagonal(), vx]) / prev - 1)))
+        params = nxt
+        tot = {k: sum(s[k] for s in stats) for k in stats[0]}
+        seconds = time.perf_counter() - t0
+        history.append({
+            "iteration": it, "delta": delta, "seconds": seconds, **tot,
+        })  # fmt: skip
+        printer(it, delta, seconds, tot)
+        if len(history) > 1:
+            gain = abs(history[-1]["log_likelihood"] - history[-2]["log_likelihood"])
+            if gain < ll_tol * max(tot["used"], 1):
+                converged = True
+                break
+    list(pool.map(lambda tr, p: tr.e_step(*p, gate), trackers, params))
+    return params, history, converged
+
+
+@dataclass
+class SubsetFit:
+    """Θ learned by :func:`learn_windows`."""
+
+    params: dict  # shared V_z, V_x; mu0, V0 of the first window
+    motion: str
+    motion_note: str
+    history: list[dict]
+    converged: bool
+    windows: list[tuple[int, int]]
+    prior_cov: np.ndarray
+    seconds: float
+    extra: dict = field(default_factory=dict)
+
+
+def learn_windows(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    windows_det: Sequence[np.ndarray],
+    norm: Normalization,
+    *,
+    motion: str = DEFAULT_MOTION,
+    joint_limits: bool = True,
+    max_iter: int = 100,
+    ll_tol: float = DEFAULT_LL_TOL,
+    gate: float | None = DEFAULT_GATE,
+    noise: float = 1e-3,
+    relinearize: int = 10,
+    progress: bool | None = False,
+    windows: Sequence[tuple[int, int]] = (),
+    workers: int = 2,
+) -> SubsetFit:
+    """Learn Θ by EM (Alg. 11) on independent windows of one recording.
+
+    Parameters
+    ----------
+    windows_det : sequence of arrays, shape (n_cams, W_k, M, 2)
+        Detections of each window in pixels, skeleton marker order, NaN where missing.
+    norm : Normalization
+        Sec. 3.3 constants.
+    motion, joint_limits, max_iter, ll_tol, gate, noise, relinearize, progress
+        As :func:`acm_rs.track` (the Gaussian noise model).
+    windows : sequence of (start, stop)
+        The windows' frame ranges, recorded in the result.
+
+    Returns
+    -------
+    SubsetFit
+        Shared parameters, the motion model used, the EM history and the prior covariance
+        of a window start for :func:`smooth_chunked`: the position block is 4 × the mean
+        smoothed ``V0`` of the windows (a single-frame fit's uncertainty, generously), the
+        velocity block the covariance of the smoothed velocities.
+    """
+    if motion not in MOTION_ORDER:
+        raise ValueError(f"motion must be one of {sorted(MOTION_ORDER)}, got {motion!r}")
+    t_start = time.perf_counter()
+    sm = StateMap(skeleton, norm, joint_limits)
+    n = sm.n_state
+    xs, mus = [], []
+    for k, det in enumerate(windows_det):
+        try:
+            _, t0, r0 = _first_pose(rig, skeleton, det, norm)
+        except ValueError:
+            raise ValueError(
+                f"EM window {k} {tuple(windows[k]) if windows else ''} has no frame with 3 "
+                "markers seen by 2 cameras; choose other windows (subset, n_windows)"
+            ) from None
+        mus.append(sm.from_pose(t0, r0))
+        xs.append(_normalized(norm, det))
+    gate_thr = gate_threshold(gate)
+    printer = _Printer(progress)
+    lim = skeleton.joint_limits
+
+    def trackers(order: int) -> list:
+        return [
+            _native.NativeTracker(
+                skeleton._native,
+                rig.get_params(),
+                np.ascontiguousarray(lim[..., 0]),
+                np.ascontiguousarray(lim[..., 1]),
+                norm._tuple(),
+                bool(joint_limits),
+                np.ascontiguousarray(x),
+                relinearize=int(relinearize),
+                order=order,
+                threads=1 if workers > 1 and len(xs) > 1 else 0,
+            )
+            for x in xs
+        ]
+
+    n_x = xs[0][0].size
+    eye = np.eye(n) * noise
+    inits = [(mu, eye, eye.copy(), np.full(n_x, noise)) for mu in mus]
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        rw = trackers(1)
+        params, history, converged = _em_windows(rw, inits, max_iter, ll_tol, gate_thr, pool,
+                                                 printer)  # fmt: skip
+        for h in history:
+            h["motion"] = "random_walk"
+        used, note, final = "random_walk", "", rw
+        rw_params = params
+        if MOTION_ORDER[motion] == 2:
+            vinit, d2s = [], []
+            for tr, p in zip(rw, params, strict=True):
+                d = {"mu0": p[0], "V0": p[1], "Vz": p[2], "Vx_diag": p[3]}
+                vinit.append(_velocity_init(d, tr.means()))
+                d2s.append(max(1, tr.n_frames - 1))
+            # one Q_v pooled over the windows' second differences
+            w = np.asarray(d2s, float)
+            vz = sum(wk * v[2] for wk, v in zip(w, vinit, strict=True)) / w.sum()
+            vinit = [(v[0], v[1], vz, v[3]) for v in vinit]
+            vel = trackers(2)
+            for tv, tr in zip(vel, rw, strict=True):
+                tv.set_linearization_hint(tr.means(), tr.covs())
+            left = max(1, max_iter - len(history))
+            vparams, more, vconv = _em_windows(vel, vinit, left, ll_tol, gate_thr, pool, printer)
+            for h in more:
+                h["motion"] = "velocity"
+            worse = _velocity_worse(history, more)
+            if worse and motion == "auto":
+                note = worse
+            else:
+                if worse:
+                    warnings.warn(
+                        f"motion='velocity' fits these windows worse than the random walk "
+                        f"({worse}); consider motion='random_walk'",
+                        stacklevel=2,
+                    )
+                used, params, converged, final = "velocity", vparams, vconv, vel
+            history = history + more
+    prior = _window_prior_cov(params, final, n, MOTION_ORDER[used])
+    first, rw_first = params[0], rw_params[0]
+    out = {"mu0": first[0], "V0": first[1], "Vz": first[2], "Vx_diag": first[3]}
+    extra = {}
+    if used == "velocity":
+        # the random walk's Θ: its smoother gives the linearisation hint of windows with a
+        # stretch without detections (as in acm_rs.track)
+        extra = {
+            "rw_params": {"mu0": rw_first[0], "V0": rw_first[1], "Vz": rw_first[2],
+                          "Vx_diag": rw_first[3]},
+            "rw_prior_cov": _window_prior_cov(rw_params, rw, n, 1),
+        }  # fmt: skip
+    return SubsetFit(
+        params=out, motion=used, motion_note=note, history=history, converged=converged,
+        windows=list(windows), prior_cov=prior, seconds=time.perf_counter() - t_start,
+        extra=extra,
+    )  # fmt: skip
+
+
+def _window_prior_cov(params: list[tuple], trackers: list, n: int, order: int) -> np.ndarray:
+    """Prior covariance of a window's start: 4 × the windows' mean smoothed ``V0`` for the
+    position (a single-frame fit's uncertainty, generously) and, for the velocity, the spread
+    of the smoothed velocities (the position means' differences) plus their mean ``V0``."""
+    ns = order * n
+    prior = np.zeros((ns, ns))
+    prior[:n, :n] = 4.0 * np.mean([p[1][:n, :n] for p in params], axis=0)
+    if order == 2:
+        vel = np.concatenate([np.diff(tr.means()[1:], axis=0) for tr in trackers])
+        prior[n:, n:] = np.cov(vel.T) + np.mean([p[1][n:, n:] for p in params], axis=0)
+    return 0.5 * (prior + prior.T)
+
+
+# -- chunked smoothing ------------------------------------------------------------------------
+
+
+class _Source:
+    """Windows of the raw inputs, read on demand (memmap / h5py / zarr friendly)."""
+
+    def __init__(self, detections, likelihood) -> None:
+        self.det, self.lik = detections, likelihood
+        shape = tuple(detections.shape)
+        if len(shape) != 4 or shape[-1] != 2:
+            raise ValueError(f"detections must have shape (n_cams, T, n_markers, 2), got {shape}")
+        if likelihood is not None and tuple(likelihood.shape) != shape[:3]:
+            raise ValueError(
+                f"likelihood must have shape {shape[:3]} (n_cams, T, n_markers), got "
+                f"{tuple(likelihood.shape)}"
+            )
+        self.n_frames = shape[1]
+
+    def window(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray | None]:
+        det = np.asarray(self.det[:, a:b], dtype=np.float64)
+        lik = None if self.lik is None else np.asarray(self.lik[:, a:b], dtype=np.float64)
+        return det, lik
+
+
+def _seam_difference(left: dict, l0: int, right: dict, r0: int, frames: Sequence[int]) -> float:
+    """Largest joint difference between two windows' estimates (window starts ``l0``,
+    ``r0``) of ``frames``, in units of the smaller of their posterior SDs."""
+    worst = 0.0
+    for f in frames:
+        a, b = left["joints"][f - l0], right["joints"][f - r0]
+        sd = np.minimum(left["joints_std"][f - l0], right["joints_std"][f - r0])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel = np.abs(a - b) / sd
+        rel = rel[np.isfinite(rel)]
+        if rel.size:
+            worst = max(worst, float(rel.max()))
+    return worst
+
+
+class _H5Writer:
+    """The output file, written core by core into a temporary file next to ``path`` and
+    renamed onto it by :meth:`close` (never a partial file under ``path``)."""
+
+    def __init__(self, path: Path, n_frames: int, skeleton: Skeleton, n_cams: int, chunk: int):
+        import h5py
+
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+        self.tmp = Path(tmp)
+        self.f = h5py.File(self.tmp, "w")
+        j, m, nb = skeleton.n_joints, skeleton.n_markers, skeleton.n_bones
+        c = max(1, min(chunk, n_frames))
+        shapes = {
+            "joints": (n_frames, j, 3), "joints_std": (n_frames, j, 3),
+            "markers": (n_frames, m, 3), "markers_std": (n_frames, m, 3),
+            "t": (n_frames, 3), "r": (n_frames, nb, 3),
+        }  # fmt: skip
+        for name, shape in shapes.items():
+            self.f.create_dataset(name, shape, dtype="f8", chunks=(c, *shape[1:]),
+                                  fillvalue=np.nan)  # fmt: skip
+        self.f.create_dataset("status", (n_cams, n_frames, m), dtype="u1",
+                              chunks=(n_cams, c, m))  # fmt: skip
+        self.f["joint_names"] = np.array(skeleton.joint_names, dtype="S")
+        self.f["marker_names"] = np.array(skeleton.marker_names, dtype="S")
+        self.nb = nb
+
+    def write(self, a: int, b: int, res: dict | None, w0: int) -> None:
+        if res is None:  # no detections to start from: NaN poses, status "missing"
+            return
+        s = slice(a - w0, b - w0)
+        for name in ("joints", "joints_std", "markers", "markers_std"):
+            self.f[name][a:b] = res[name][s]
+        self.f["t"][a:b] = res["poses"][s, :3]
+        self.f["r"][a:b] = res["poses"][s, 3:].reshape(b - a, self.nb, 3)
+        self.f["status"][:, a:b] = res["status"][:, s]
+
+    def close(self, info: dict, params: dict) -> Path:
+        g = self.f.create_group("params")
+        for k, v in params.items():
+            g[k] = np.asarray(v)
+        for k in ("seam_frames", "seam_difference", "burn_in"):
+            self.f[k] = np.asarray(info.pop(k))
+        self.f.attrs["info"] = json.dumps(info, default=_jsonable)
+        self.f.attrs["format"] = "acm-rs chunked poses 1"
+        self.f.close()
+        os.chmod(self.tmp, new_file_mode())
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        try:
+            self.f.close()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+
+def _jsonable(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return str(v)
+
+
+class _LocalMap:
+    """Runs windows on a thread pool (the native work releases the GIL)."""
+
+    def __init__(self, model: _Model, workers: int) -> None:
+        self.model, self.pool = model, ThreadPoolExecutor(max_workers=max(1, workers))
+        self.workers = max(1, workers)
+
+    def submit(self, det, lik):
+        return self.pool.submit(smooth_window, self.model, det, lik)
+
+    def close(self) -> None:
+        self.pool.shutdown()
+
+
+class _DaskMap:
+    """Runs windows on a Dask cluster: the model is sent to every worker once."""
+
+    def __init__(self, model: _Model, client) -> None:
+        from distributed import Client
+
+        self.own = isinstance(client, str)
+        self.client = Client(client) if self.own else client
+        self.model = self.client.scatter(model, broadcast=True)
+        self.workers = max(1, len(self.client.scheduler_info()["workers"]))
+
+    def submit(self, det, lik):
+        return self.client.submit(smooth_window, self.model, det, lik, pure=False)
+
+    def close(self) -> None:
+        if self.own:
+            self.client.close()
+
+
+def smooth_chunked(
+    model: _Model,
+    source: _Source,
+    out: Path,
+    *,
+    chunk: int = DEFAULT_CHUNK,
+    burn_in: int = DEFAULT_BURN_IN,
+    tol: float = DEFAULT_TOL,
+    max_burn_in: int | None = None,
+    client=None,
+    workers: int = 2,
+    info: dict | None = None,
+    progress: bool | None = False,
+) -> dict:
+    """Smooth a whole recording with fixed parameters, core by core (see the module
+    docstring), writing the HDF5 file ``out``; returns the run's info (also stored in the
+    file's ``info`` attribute)."""
+    t_start = time.perf_counter()
+    T = source.n_frames
+    if chunk < 1 or burn_in < 1:
+        raise ValueError(f"chunk and burn_in must be >= 1, got {chunk}, {burn_in}")
+    max_burn_in = max(burn_in, max_burn_in if max_burn_in is not None else 8 * burn_in)
+    cores = [(a, min(a + chunk, T)) for a in range(0, T, chunk)]
+    n_chunks = len(cores)
+    burn = [burn_in] * n_chunks
+    runner = _DaskMap(model, client) if client is not None else _LocalMap(model, workers)
+    writer = _H5Writer(out, T, model.skeleton, len(model.rig), chunk)
+    show = _on_terminal(progress)
+    recomputed, disagree, seam_frames, seam_diff = 0, [], [], []
+    totals: dict[str, float] = {}
+
+    def window(k: int) -> tuple[int, int]:
+        a, b = cores[k]
+        return max(0, a - burn[k]), min(T, b + burn[k])
+
+    def submit(k: int):
+        w0, w1 = window(k)
+        return (w0, runner.submit(*source.window(w0, w1)))
+
+    def result(job) -> tuple[int, dict | None]:
+        return job[0], job[1].result()
+
+    try:
+        depth = runner.workers + 1
+        pending = {k: submit(k) for k in range(min(depth, n_chunks))}
+        prev = result(pending.pop(0))
+        for k in range(1, n_chunks + 1):
+            if k + depth - 1 < n_chunks:
+                pending[k + depth - 1] = submit(k + depth - 1)
+            if k == n_chunks:
+                cur = None
+            else:
+                cur = result(pending.pop(k))
+                e = cores[k][0]
+                frames = (e - 1, e)
+                last = math.inf
+                while True:
+                    (l0, lres), (r0, rres) = prev, cur
+                    diff = (
+                        math.inf if lres is None or rres is None
+                        else _seam_difference(lres, l0, rres, r0, frames)
+                    )  # fmt: skip
+                    if diff <= tol or (burn[k - 1] >= max_burn_in and burn[k] >= max_burn_in):
+                        break
+                    if math.isfinite(last) and diff > 0.5 * last:
+                        # doubling the burn-in did not halve the difference: the windows
+                        # disagree for another reason (below), not for a short burn-in
+                        break
+                    last = diff
+                    burn[k - 1] = min(2 * burn[k - 1], max_burn_in)
+                    burn[k] = min(2 * burn[k], max_burn_in)
+                    recomputed += 2
+                    prev, cur = result(submit(k - 1)), result(submit(k))
+                seam_frames.append(e)
+                seam_diff.append(diff)
+                if diff > tol:
+                    disagree.append(e)
+            w0, lres = prev
+            writer.write(*cores[k - 1], lres, w0)
+            if lres is not None:
+                for key, v in lres["stats"].items():
+                    totals[key] = totals.get(key, 0.0) + v
+            if show:
+                done = cores[k - 1][1]
+                print(f"\rsmoothed {done}/{T} frames", end="", file=sys.stderr, flush=True)
+            prev = cur
+        if show:
+            print(file=sys.stderr)
+        if disagree:
+            warnings.warn(
+                f"{len(disagree)} seam(s) between chunks disagree by more than {tol} posterior "
+                f"SD (up to {max(seam_diff):.3g} SD, burn-in up to {max(burn)} frames; frames "
+                f"{disagree[:5]}): windows that start elsewhere reach different poses there "
+                "(a camera out, no detections, an overconfident posterior); the result near "
+                "these seams depends on the chunking (docs/tracking.md, 'Long recordings')",
+                stacklevel=2,
+            )
+        run = {
+            "chunk": int(chunk), "burn_in_default": int(burn_in), "tol": float(tol),
+            "max_burn_in": int(max_burn_in), "windows_recomputed": recomputed,
+            "seams_disagreeing": disagree, "n_frames": T, "n_chunks": n_chunks,
+            "seconds_smoothing": time.perf_counter() - t_start,
+            "scheduler": "dask" if client is not None else f"threads({workers})",
+            "stats": totals, "acm_rs_version": __version__,
+        }  # fmt: skip
+        stored = dict(info or {}) | run
+        stored |= {"seam_frames": seam_frames, "seam_difference": seam_diff, "burn_in": burn}
+        stored_params = model.params | {"window_prior_cov": model.prior_cov}
+        if model.rw_params is not None:
+            stored_params |= {f"rw_{k}": v for k, v in model.rw_params.items()}
+            stored_params["rw_window_prior_cov"] = model.rw_prior_cov
+        writer.close(stored, stored_params)
+        return (
+            dict(info or {})
+            | run
+            | {"seam_difference_max": float(max(seam_diff)) if seam_diff else 0.0}
+        )
+    except BaseException:
+        writer.abort()
+        raise
+    finally:
+        runner.close()
+
+
+# -- the whole job ----------------------------------------------------------------------------
+
+
+def track_long(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    detections,
+    out: str | os.PathLike,
+    *,
+    likelihood=None,
+    pcutoff: float = 0.9,
+    marker_names: Sequence[str] | None = None,
+    joint_limits: bool = True,
+    motion: str = DEFAULT_MOTION,
+    subset: int = DEFAULT_SUBSET,
+    n_windows: int = DEFAULT_WINDOWS,
+    chunk: int = DEFAULT_CHUNK,
+    burn_in: int = DEFAULT_BURN_IN,
+    tol: float = DEFAULT_TOL,
+    max_iter: int = 100,
+    ll_tol: float = DEFAULT_LL_TOL,
+    gate: float | None = DEFAULT_GATE,
+    relinearize: int = 10,
+    normalization: Normalization | None = None,
+    client=None,
+    workers: int = 2,
+    overwrite: bool = False,
+    progress: bool | None = False,
+) -> dict:
+    """Track a recording of any length in bounded memory: Θ by EM on a subset of windows,
+    then the chunked smoother with Θ fixed, streamed to an HDF5 file (module docstring).
+
+    Parameters
+    ----------
+    detections : array_like, shape (n_cams, T, n_markers, 2)
+        Pixels, NaN where missing; read one window at a time, so a ``numpy.memmap`` or an
+        ``h5py``/``zarr`` dataset keeps memory bounded.
+    out : path
+        The HDF5 file: datasets ``joints``, ``joints_std``, ``markers``, ``markers_std``
+        ``(T, ·, 3)`` in the skeleton's units, ``t (T, 3)``, ``r (T, n_bones, 3)``,
+        ``status (C, T, M)`` (1 used, 2 gated, 3 invisible, 0 missing), ``params/*``,
+        ``seam_frames``, ``seam_difference`` (SDs), ``burn_in`` per chunk, and the JSON
+        ``info`` attribute. Written atomically.
+    likelihood : array_like, shape (n_cams, T, n_markers), optional
+        DeepLabCut confidences; below ``pcutoff`` is missing.
+    subset, n_windows : int
+        EM runs on ``n_windows`` evenly spread windows of ``subset // n_windows`` frames.
+    chunk, burn_in, tol : int, int, float
+        Core length, burn-in on each side, and the largest seam difference in posterior SDs
+        before the burn-in is doubled.
+    client : None, str or distributed.Client
+        Run the chunks on a Dask cluster (a scheduler address or a Client); the result is
+        identical to the local run's. None: a local thread pool of ``workers`` threads.
+    Others : as :func:`acm_rs.track` (Gaussian noise model).
+
+    Returns
+    -------
+    dict
+        ``path``, the motion model, the EM history and timings, seam statistics.
+    """
+    t_start = time.perf_counter()
+    path = check_output_path(out, overwrite, "poses file")
+    source = _Source(detections, likelihood)
+    T = source.n_frames
+    norm = normalization or default_normalization(rig, skeleton)
+    check_units(rig, skeleton)
+    stub = _Model(rig, skeleton, norm, joint_limits, relinearize, None, 1, {}, np.zeros((0, 0)),
+                  pcutoff, marker_names)  # fmt: skip
+    wins = subset_windows(T, subset, n_windows)
+    windows_det = [stub.detections(*source.window(a, b)) for a, b in wins]
+    first = windows_det[0]
+    fit_px = check_camera_order(rig, skeleton, first, norm)
+    check_scale(rig, skeleton, first)
+    fit = learn_windows(
+        rig, skeleton, windows_det, norm, motion=motion, joint_limits=joint_limits,
+        max_iter=max_iter, ll_tol=ll_tol, gate=gate, relinearize=relinearize,
+        progress=progress, windows=wins, workers=workers,
+    )  # fmt: skip
+    del windows_det
+    model = _Model(
+        rig, skeleton, norm, joint_limits, relinearize, gate_threshold(gate),
+        MOTION_ORDER[fit.motion], fit.params, fit.prior_cov, pcutoff, marker_names,
+        fit.extra.get("rw_params"), fit.extra.get("rw_prior_cov"),
+    )  # fmt: skip
+    info = {
+        "method": "ukf-chunked", "motion": fit.motion, "motion_requested": motion,
+        "motion_note": fit.motion_note, "em_windows": wins, "em_history": fit.history,
+        "em_converged": fit.converged, "seconds_em": fit.seconds, "gate": gate,
+        "pcutoff": pcutoff, "joint_limits": joint_limits, "relinearize": relinearize,
+        "normalization": _norm_dict(norm), "check_fit_px": fit_px,
+        "units": skeleton.units,
+    }  # fmt: skip
+    run = smooth_chunked(
+        model, source, path, chunk=chunk, burn_in=burn_in, tol=tol, client=client,
+        workers=workers, info=info, progress=progress,
+    )  # fmt: skip
+    run["path"] = str(path)
+    run["seconds"] = time.perf_counter() - t_start
+    return run
+
+
+def read_chunked(path: str | os.PathLike, frames: slice | None = None) -> dict:
+    """Arrays of a :func:`track_long` file (``frames``: a slice of frames, default all) and
+    its ``info`` dict."""
+    import h5py
+
+    s = frames if frames is not None else slice(None)
+    with h5py.File(path, "r") as f:
+        if f.attrs.get("format") != "acm-rs chunked poses 1":
+            raise ValueError(f"{path} is not a chunked poses file of acm-rs")
+        out = {k: f[k][s] for k in ("joints", "joints_std", "markers", "markers_std", "t", "r")}
+        out["status"] = f["status"][:, s]
+        out["params"] = {k: f["params"][k][()] for k in f["params"]}
+        for k in ("seam_frames", "seam_difference", "burn_in"):
+            out[k] = f[k][()]
+        out["info"] = json.loads(f.attrs["info"])
+        out["joint_names"] = [n.decode() for n in f["joint_names"][()]]
+        out["marker_names"] = [n.decode() for n in f["marker_names"][()]]
+    return out

@@ -1,0 +1,200 @@
+"""Long recordings (issue 16 items 1-2): EM on windows, the chunked smoother against the
+smoother of the whole recording, Dask against threads, atomic output."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+import acm_rs
+from acm_rs import datasets, models
+from acm_rs.demo import demo_rig
+from acm_rs.tracking import long as L
+from acm_rs.tracking.track import DEFAULT_GATE, default_normalization, gate_threshold
+
+N = 600
+
+
+@pytest.fixture(scope="module")
+def case():
+    sk = datasets.individual_skeleton(models.rat(), seed=1)
+    rig = demo_rig()
+    t, r = datasets.smooth_motion(sk, N, seed=4)
+    det, lik = datasets.dlc_like_detections(rig, sk, t, r, missing=0.15, outliers=0.01, seed=5)
+    det[2, 250:420] = np.nan  # a camera out for a while, across a seam
+    truth = sk.forward(t, r)[0]
+    norm = default_normalization(rig, sk)
+    stub = L._Model(rig, sk, norm, True, 10, None, 1, {}, np.zeros((0, 0)), 0.9)
+    wins = L.subset_windows(N, 300, 2)
+    fit = L.learn_windows(
+        rig, sk, [stub.detections(det[:, a:b], lik[:, a:b]) for a, b in wins], norm,
+        motion="random_walk", windows=wins,
+    )  # fmt: skip
+    model = L._Model(
+        rig, sk, norm, True, 10, gate_threshold(DEFAULT_GATE), 1, fit.params, fit.prior_cov, 0.9
+    )
+    return {"sk": sk, "rig": rig, "det": det, "lik": lik, "truth": truth, "model": model,
+            "fit": fit}  # fmt: skip
+
+
+def _smooth(case, path, **kw):
+    return L.smooth_chunked(case["model"], L._Source(case["det"], case["lik"]), path, **kw)
+
+
+def test_subset_windows_are_spread_evenly():
+    w = L.subset_windows(100_000, 20_000, 10)
+    assert len(w) == 10 and all(b - a == 2000 for a, b in w)
+    assert w[0][0] == 0 and w[-1][1] == 100_000
+    gaps = np.diff([a for a, _ in w])
+    assert gaps.max() - gaps.min() <= 1
+    assert L.subset_windows(500, 20_000, 10) == [(0, 500)]
+    with pytest.raises(ValueError, match="no frames"):
+        L.subset_windows(0)
+
+
+def test_skeleton_pickles_bit_for_bit(case):
+    sk = case["sk"]
+    back = pickle.loads(pickle.dumps(sk))
+    t, r = datasets.smooth_motion(sk, 5, seed=9)
+    for a, b in zip(sk.forward(t, r), back.forward(t, r), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert back.marker_names == sk.marker_names and back.units == sk.units
+
+
+def test_windows_share_vz_and_vx(case):
+    fit = case["fit"]
+    assert fit.motion == "random_walk" and len(fit.windows) == 2
+    n = case["model"].prior_cov.shape[0]
+    assert fit.params["Vz"].shape == (n, n) and np.all(np.linalg.eigvalsh(fit.params["Vz"]) > 0)
+    assert fit.history and fit.history[-1]["used"] > 0
+
+
+def test_windows_covering_the_recording_reproduce_it_exactly(case, tmp_path):
+    # cores, offsets and the writer: with a burn-in that spans the recording every window is
+    # the whole recording, so the stitched file must equal the single window bit for bit
+    _smooth(case, tmp_path / "whole.h5", chunk=N)
+    info = _smooth(case, tmp_path / "chunked.h5", chunk=150, burn_in=N)
+    a = acm_rs.read_chunked(tmp_path / "whole.h5")
+    b = acm_rs.read_chunked(tmp_path / "chunked.h5")
+    assert info["n_chunks"] == 4 and np.all(b["seam_difference"] == 0)
+    for k in ("joints", "joints_std", "markers", "markers_std", "t", "r", "status"):
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_chunked_smoother_is_as_accurate_and_reports_its_seams(case, tmp_path):
+    _smooth(case, tmp_path / "whole.h5", chunk=N)
+    with pytest.warns(UserWarning, match="seam"):
+        info = _smooth(case, tmp_path / "chunked.h5", chunk=150, burn_in=60, tol=0.05)
+    a = acm_rs.read_chunked(tmp_path / "whole.h5")
+    b = acm_rs.read_chunked(tmp_path / "chunked.h5")
+    err_a = np.linalg.norm(a["joints"] - case["truth"], axis=-1).mean()
+    err_b = np.linalg.norm(b["joints"] - case["truth"], axis=-1).mean()
+    assert abs(err_b - err_a) < 0.25 * err_a
+    # the disagreement is measured and reported, not hidden (docs/tracking.md: windows that
+    # start elsewhere differ by several posterior SDs with a camera out)
+    assert len(b["seam_frames"]) == 3 and info["seam_difference_max"] > 0.05
+    assert info["seams_disagreeing"] == [int(f) for f, d in
+                                         zip(b["seam_frames"], b["seam_difference"],
+                                             strict=True) if d > 0.05]  # fmt: skip
+
+
+def test_a_short_burn_in_is_caught_and_extended(case, tmp_path):
+    with pytest.warns(UserWarning, match="seam"):
+        info = _smooth(case, tmp_path / "c.h5", chunk=150, burn_in=1, tol=0.05, max_burn_in=64)
+    out = acm_rs.read_chunked(tmp_path / "c.h5")
+    assert info["windows_recomputed"] > 0 and out["burn_in"].max() > 1
+    # one frame of burn-in alone disagrees at the seams
+    first = L.smooth_window(case["model"], case["det"][:, 149:301], case["lik"][:, 149:301])
+    prev = L.smooth_window(case["model"], case["det"][:, :151], case["lik"][:, :151])
+    assert L._seam_difference(prev, 0, first, 149, (149, 150)) > 0.05
+
+
+def test_dask_cluster_gives_the_same_file(case, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    _smooth(case, tmp_path / "threads.h5", chunk=200, burn_in=40, tol=np.inf)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+    ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
+        info = _smooth(case, tmp_path / "dask.h5", chunk=200, burn_in=40, tol=np.inf,
+                       client=client)  # fmt: skip
+    assert info["scheduler"] == "dask"
+    a = acm_rs.read_chunked(tmp_path / "threads.h5")
+    b = acm_rs.read_chunked(tmp_path / "dask.h5")
+    for k in ("joints", "joints_std", "markers", "t", "r", "status", "burn_in"):
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+class _Failing:
+    """Detections that fail when the third chunk is read."""
+
+    def __init__(self, det):
+        self.det, self.shape = det, det.shape
+
+    def __getitem__(self, idx):
+        if idx[1].start is not None and idx[1].start >= 250:
+            raise OSError("disk gone")
+        return self.det[idx]
+
+
+def test_a_failure_leaves_no_file(case, tmp_path):
+    src = L._Source(_Failing(case["det"]), case["lik"])
+    with pytest.raises(OSError, match="disk gone"):
+        L.smooth_chunked(case["model"], src, tmp_path / "x.h5", chunk=150, burn_in=20)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_track_long_end_to_end(case, tmp_path):
+    out = tmp_path / "poses.h5"
+    info = acm_rs.track_long(
+        case["rig"], case["sk"], case["det"], out, likelihood=case["lik"], subset=300,
+        n_windows=2, chunk=200, burn_in=40, motion="random_walk",
+    )  # fmt: skip
+    res = acm_rs.read_chunked(out)
+    assert res["joints"].shape == case["truth"].shape
+    err = np.linalg.norm(res["joints"] - case["truth"], axis=-1)
+    assert np.mean(err) < 0.15  # cm (random walk learned on 2 x 150 frames: 1.1 mm)
+    assert res["info"]["motion"] == "random_walk" and res["info"]["em_windows"] == [
+        [0, 150],
+        [450, 600],
+    ]
+    assert info["path"] == str(out) and res["joint_names"] == list(case["sk"].joint_names)
+    with pytest.raises(ValueError, match="overwrite"):
+        acm_rs.track_long(case["rig"], case["sk"], case["det"], out, likelihood=case["lik"])
+
+
+def test_bad_inputs_are_refused(case, tmp_path):
+    with pytest.raises(ValueError, match="n_cams, T, n_markers, 2"):
+        L._Source(case["det"][..., 0], None)
+    with pytest.raises(ValueError, match="likelihood must have shape"):
+        L._Source(case["det"], case["lik"][:, :10])
+    with pytest.raises(ValueError, match="chunk and burn_in"):
+        _smooth(case, tmp_path / "x.h5", chunk=0)
+
+
+def test_command_line_with_memory_mapped_input(case, tmp_path):
+    from acm_rs.cli import main
+
+    np.save(tmp_path / "det.npy", case["det"])
+    np.save(tmp_path / "lik.npy", case["lik"])
+    case["rig"].save(tmp_path / "calibration.toml")
+    case["sk"].save(tmp_path / "skeleton.toml")
+    out = tmp_path / "poses.h5"
+    argv = [
+        "track-long", "--calibration", str(tmp_path / "calibration.toml"), "--skeleton",
+        str(tmp_path / "skeleton.toml"), "--npy", str(tmp_path / "det.npy"), "--likelihood",
+        str(tmp_path / "lik.npy"), "--subset", "300", "--windows", "2", "--chunk", "300",
+        "--burn-in", "40", "--motion", "random_walk", "-o", str(out),
+    ]  # fmt: skip
+    assert main(argv) == 0
+    res = acm_rs.read_chunked(out)
+    assert np.mean(np.linalg.norm(res["joints"] - case["truth"], axis=-1)) < 0.15
+    assert main(argv) != 0  # exists: refused without --overwrite
+
+
+def test_motion_blocks_join_without_a_jump(case):
+    t, r = datasets.smooth_motion(case["sk"], 100, seed=3)
+    t1, r1 = datasets.smooth_motion(case["sk"], 40, seed=3, start=60)
+    np.testing.assert_allclose(t1, t[60:], atol=1e-12)
+    np.testing.assert_allclose(r1, r[60:], atol=1e-12)
