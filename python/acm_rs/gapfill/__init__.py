@@ -16,7 +16,7 @@ import numpy as np
 
 from .. import _native
 
-__all__ = ["METHODS", "FillResult", "fill"]
+__all__ = ["METHODS", "FillResult", "fill", "fill_chunked"]
 
 METHODS: tuple[str, ...] = ("lowdim", "lowdim-paper", "linear", "spline", "rw", "cv", "msvd")
 """Method names accepted by :func:`fill`, in the order of the evaluation tables."""
@@ -239,3 +239,6 @@ def fill(
             std[~nan] = 0.0
     info = {**info, "method": method, "options": opts, "skipped_markers": np.flatnonzero(dead)}
     return FillResult(filled=out, std=std, imputed=imputed, info=info)
+
+
+from .chunked import fill_chunked  # noqa: E402  (it builds on fill)
