@@ -198,3 +198,14 @@ def test_motion_blocks_join_without_a_jump(case):
     t1, r1 = datasets.smooth_motion(case["sk"], 40, seed=3, start=60)
     np.testing.assert_allclose(t1, t[60:], atol=1e-12)
     np.testing.assert_allclose(r1, r[60:], atol=1e-12)
+
+
+def test_vz_shrinkage_moves_towards_the_diagonal():
+    vz = np.array([[2.0, 1.0], [1.0, 3.0]])
+    p = {"Vz": vz, "mu0": np.zeros(2)}
+    np.testing.assert_array_equal(L.shrink_vz(p, 1.0)["Vz"], np.diag([2.0, 3.0]))
+    np.testing.assert_array_equal(L.shrink_vz(p, 0.0)["Vz"], vz)
+    np.testing.assert_allclose(L.shrink_vz(p, 0.8)["Vz"][0, 1], 0.2)
+    assert p["Vz"] is vz  # the input is not changed
+    with pytest.raises(ValueError, match="vz_shrinkage"):
+        L.shrink_vz(p, 1.5)
