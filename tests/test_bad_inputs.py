@@ -542,7 +542,7 @@ def test_outputs_get_the_permissions_of_a_normal_new_file(tmp_path, umask):
 
 
 def test_ctrl_c_exits_130_and_writes_nothing(w, tmp_path, monkeypatch, capsys):
-    import acm_rs.gapfill as gf
+    import acm_rs.gapfill.filling as gf
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
@@ -580,7 +580,7 @@ def test_interrupted_track_exits_130_marks_the_result_and_exports_nothing(
 def test_a_bug_is_reported_as_an_internal_error_without_a_traceback(
     w, tmp_path, monkeypatch, capsys
 ):
-    import acm_rs.gapfill as gf
+    import acm_rs.gapfill.filling as gf
 
     def bug(*a, **k):
         raise KeyError("oops")
@@ -594,7 +594,7 @@ def test_a_bug_is_reported_as_an_internal_error_without_a_traceback(
 def test_numerical_error_in_gapfill_is_one_line_and_debug_shows_the_traceback(
     w, tmp_path, monkeypatch, capsys
 ):
-    import acm_rs.gapfill as gf
+    import acm_rs.gapfill.filling as gf
 
     def broken(*a, **k):
         raise acm_rs.AcmNumericalError("covariance not positive definite")

@@ -353,7 +353,7 @@ def test_cli_gapfill(seq, tmp_path):
 
 
 def test_cli_gapfill_sds_are_opt_in(seq, tmp_path, monkeypatch, capsys):
-    import acm_rs.gapfill as gf
+    import acm_rs.gapfill.filling as gf
     from acm_rs.cli import main
 
     calls = []

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from . import FillResult, fill
+from .filling import FillResult, fill
 
 #: Frames per core and of context on each side (at least twice the longest gap).
 DEFAULT_CHUNK = 20000

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import METHODS
+from .filling import METHODS
 
 #: Recordings longer than this are filled in windows unless --chunk says otherwise (the
 #: whole-recording fill of 200,000 frames x 41 markers peaks at 3.8 GB; issue 16).
@@ -27,7 +27,7 @@ def _stage(msg: str, start: float) -> None:
 def _cmd_gapfill(args: argparse.Namespace) -> int:
     from .._io import check_output_path
     from .._native import AcmNumericalError
-    from . import fill
+    from .filling import fill
     from .io import check_output, read, sidecar_path, write_like
 
     src = Path(args.input)

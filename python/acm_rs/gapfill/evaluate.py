@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .._io import atomic_write
-from . import METHODS, fill
+from .filling import METHODS, fill
 
 __all__ = ["EvalResult", "evaluate", "insert_gaps", "run_lengths"]
 
