@@ -581,7 +581,11 @@ def smooth_chunked(
     n_chunks = len(cores)
     burn = [burn_in] * n_chunks
     runner = _DaskMap(model, client) if client is not None else _LocalMap(model, workers)
-    writer = _H5Writer(out, T, model.skeleton, len(model.rig), chunk)
+    try:
+        writer = _H5Writer(out, T, model.skeleton, len(model.rig), chunk)
+    except BaseException:
+        runner.close()
+        raise
     show = _on_terminal(progress)
     recomputed, disagree, seam_frames, seam_diff = 0, [], [], []
     totals: dict[str, float] = {}
