@@ -209,3 +209,11 @@ def test_vz_shrinkage_moves_towards_the_diagonal():
     assert p["Vz"] is vz  # the input is not changed
     with pytest.raises(ValueError, match="vz_shrinkage"):
         L.shrink_vz(p, 1.5)
+
+
+def test_implausible_em_windows_are_left_out():
+    assert L._plausible([4.7, 10.5, 4.6, 4.7]) == [0, 2, 3]
+    assert L._plausible([4.7, 10.5]) == [0, 1]  # two windows: no majority to judge by
+    assert L._plausible([9.0, 9.0, 1.0, 1.0, 1.0]) == [2, 3, 4]
+    assert L._plausible([9.0, 9.0, 9.0, 1.0, 1.0]) == [0, 1, 2, 3, 4]  # median among the bad
+    assert L._plausible([4.0, np.inf, 4.2]) == [0, 2]
