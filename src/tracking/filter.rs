@@ -180,16 +180,11 @@ pub(crate) fn step<E: Emission + ?Sized>(
     }
     ws.used
         .extend((0..n_x).filter(|&j| mask[j] == status::USED));
-    if let Some((hm, hv)) = hint {
-        let invisible = mask.iter().filter(|&&m| m == status::INVISIBLE).count();
-        let measured = ws.used.len() + invisible;
-        let broad = measured > 0 && 5 * invisible > measured;
-        // (the other sign of a broad prior, a first update that does not hold, is tested
-        // below once that update exists)
-        if broad {
+    // the update linearised about the hint, where the prior is too broad (two places below)
+    let hinted =
+        |h: (&[f64], &[f64]), mask: &mut [u8], stats: &mut FilterStats, ws: &mut Workspace| {
             let prior = (zfull.as_slice(), &l_full);
-            let h = (hm, hv);
-            if let Some(up) = hinted_update(
+            hinted_update(
                 em,
                 prior,
                 x_t,
@@ -200,7 +195,16 @@ pub(crate) fn step<E: Emission + ?Sized>(
                 mask,
                 stats,
                 ws,
-            )? {
+            )
+        };
+    if let Some((hm, hv)) = hint {
+        let invisible = mask.iter().filter(|&&m| m == status::INVISIBLE).count();
+        let measured = ws.used.len() + invisible;
+        let broad = measured > 0 && 5 * invisible > measured;
+        // (the other sign of a broad prior, a first update that does not hold, is tested
+        // below once that update exists)
+        if broad {
+            if let Some(up) = hinted((hm, hv), mask, stats, ws)? {
                 finish(&up, &ws.used, &vx_eff, stats, mu_out, v_out);
                 return Ok(());
             }
@@ -254,20 +258,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
             let err = linearisation_error(em, &up, &xhat, &vx_eff, &mut gx, ws)?;
             if err.is_nan() || err > RELIN_THRESHOLD {
                 stats.used -= np;
-                let prior = (zfull.as_slice(), &l_full);
-                let h = (hm, hv);
-                if let Some(better) = hinted_update(
-                    em,
-                    prior,
-                    x_t,
-                    &vx_eff,
-                    h,
-                    relinearize,
-                    frame,
-                    mask,
-                    stats,
-                    ws,
-                )? {
+                if let Some(better) = hinted((hm, hv), mask, stats, ws)? {
                     finish(&better, &ws.used, &vx_eff, stats, mu_out, v_out);
                     return Ok(());
                 }

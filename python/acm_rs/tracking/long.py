@@ -327,24 +327,14 @@ def learn_windows(
         xs.append(_normalized(norm, det))
     gate_thr = gate_threshold(gate)
     printer = _Printer(progress)
-    lim = skeleton.joint_limits
+    # one tracker constructor for the windows and the chunks (_Model.tracker)
+    maker = _Model(
+        rig, skeleton, norm, joint_limits, relinearize, gate_thr, 1, {}, np.zeros((0, 0)), 0.9,
+        threads=1 if workers > 1 and len(xs) > 1 else 0,
+    )  # fmt: skip
 
     def trackers(order: int, which: Sequence[int]) -> list:
-        return [
-            _native.NativeTracker(
-                skeleton._native,
-                rig.get_params(),
-                np.ascontiguousarray(lim[..., 0]),
-                np.ascontiguousarray(lim[..., 1]),
-                norm._tuple(),
-                bool(joint_limits),
-                np.ascontiguousarray(x),
-                relinearize=int(relinearize),
-                order=order,
-                threads=1 if workers > 1 and len(xs) > 1 else 0,
-            )
-            for x in (xs[k] for k in which)
-        ]
+        return [maker.tracker(xs[k], order=order) for k in which]
 
     n_x = xs[0][0].size
     eye = np.eye(n) * noise
