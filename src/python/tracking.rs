@@ -262,6 +262,52 @@ impl PyTracker {
         stats_dict(py, &s)
     }
 
+    /// The backward pass over the moments of the last `e_step(smooth=False)`, starting from
+    /// `end=(mean (ns,), cov (ns, ns))`, the smoothed moments after the last frame as the
+    /// next segment of a longer recording computed them (None: the filtered ones); only
+    /// `V_z` of the parameters is used (`Tracker::smooth_filtered`).
+    #[pyo3(signature = (mu0, v0, vz, vx, end=None))]
+    fn smooth_filtered<'py>(
+        &mut self,
+        py: Python<'py>,
+        mu0: Arr<'py>,
+        v0: Arr<'py>,
+        vz: Arr<'py>,
+        vx: Arr<'py>,
+        end: Option<(Arr<'py>, Arr<'py>)>,
+    ) -> PyResult<()> {
+        let p = self.params(&(mu0, v0, vz, vx))?;
+        let ns = self.inner.n_state();
+        let end = match &end {
+            Some((m, c)) => Some((
+                view(m, "end mean", &[Some(ns)])?.to_vec(),
+                view(c, "end covariance", &[Some(ns), Some(ns)])?.to_vec(),
+            )),
+            None => None,
+        };
+        let inner = &mut self.inner;
+        py.detach(|| {
+            inner.smooth_filtered(&p, end.as_ref().map(|(m, c)| (m.as_slice(), c.as_slice())))
+        })
+        .map_err(to_py)
+    }
+
+    /// Moments of the whole state (`ns = order · n`, position first) at row `k` of the last
+    /// pass (`0..=T`; negative counts from the end): `(mean (ns,), cov (ns, ns))`; after
+    /// `e_step(smooth=False)` the filtered ones (the checkpoint of a long recording).
+    fn state_row<'py>(&self, py: Python<'py>, k: isize) -> PyResult<(Out<'py>, Out<'py>)> {
+        let rows = self.inner.n_frames() as isize + 1;
+        let idx = if k < 0 { rows + k } else { k };
+        if idx < 0 {
+            return Err(pyo3::exceptions::PyIndexError::new_err(format!(
+                "row {k} of {rows}"
+            )));
+        }
+        let (m, c) = self.inner.state_row(idx as usize).map_err(to_py)?;
+        let ns = m.len();
+        Ok((out(py, m.to_vec(), &[ns])?, out(py, c.to_vec(), &[ns, ns])?))
+    }
+
     /// The M-step from the last E-step (Alg. 12) → params dict.
     fn m_step<'py>(
         &self,

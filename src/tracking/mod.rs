@@ -171,6 +171,8 @@ pub struct Tracker<E: Emission> {
     hint: Option<(Vec<f64>, Vec<f64>)>,
     /// Whether `acc` holds the statistic of the last smoother pass.
     has_statistics: bool,
+    /// Whether the moments are those of a filter pass (not smoothed yet).
+    filtered_only: bool,
 }
 
 /// Default maximum number of iterated posterior linearisations per frame (see
@@ -220,6 +222,7 @@ impl<E: Emission> Tracker<E> {
             zcovs: Vec::new(),
             hint: None,
             has_statistics: false,
+            filtered_only: false,
         })
     }
 
@@ -389,6 +392,8 @@ impl<E: Emission> Tracker<E> {
             )?;
         }
         self.stats = stats;
+        self.has_statistics = false;
+        self.filtered_only = true;
         self.extract_positions();
         Ok(stats)
     }
@@ -411,6 +416,60 @@ impl<E: Emission> Tracker<E> {
         self.filter_smooth(params, gate, false)
     }
 
+    /// The backward pass (Alg. 8, without eq. 79's statistic) over the moments of the last
+    /// [`Self::filter`], for one segment of a longer recording (the streaming smoother of long
+    /// recordings): it starts from `end` = (mean `ns`, covariance `ns × ns`), the smoothed
+    /// moments after the segment's last frame as computed by the next segment, instead of the
+    /// last filtered ones (`None`: the last segment). With `params`' `μ0, V0` set to the
+    /// filtered moments before the segment's first frame (its checkpoint), the segments
+    /// reproduce the smoother of the whole recording exactly.
+    ///
+    /// # Errors
+    /// Invalid if the last pass was not a filter; shape and finiteness errors for `end`;
+    /// numerical errors as [`Self::smooth`].
+    pub fn smooth_filtered(
+        &mut self,
+        params: &Params,
+        end: Option<(&[f64], &[f64])>,
+    ) -> Result<()> {
+        if !self.filtered_only {
+            return Err(AcmError::Invalid(
+                "smooth_filtered needs the moments of a filter pass (run filter first)".into(),
+            ));
+        }
+        let ns = self.n_state();
+        ensure_len(params.vz.len(), ns * ns, "V_z (n, n)")?;
+        if let Some((m, c)) = end {
+            ensure_len(m.len(), ns, "end mean (ns)")?;
+            ensure_len(c.len(), ns * ns, "end covariance (ns, ns)")?;
+            crate::error::ensure_finite(m, "end mean")?;
+            crate::error::ensure_finite(c, "end covariance")?;
+            let t = self.n_frames;
+            self.means[t * ns..(t + 1) * ns].copy_from_slice(m);
+            self.covs[t * ns * ns..(t + 1) * ns * ns].copy_from_slice(c);
+        }
+        self.backward(params, false)
+    }
+
+    /// Moments of the whole state at row `k` of the last pass (`0..=T`; row 0 = the prior of
+    /// `z_0`, row `t` = after frame `t`): `(mean ns, covariance ns × ns)`.
+    ///
+    /// # Errors
+    /// Invalid for `k > T`.
+    pub fn state_row(&self, k: usize) -> Result<(&[f64], &[f64])> {
+        if k > self.n_frames {
+            return Err(AcmError::Invalid(format!(
+                "row {k} is beyond the last frame {}",
+                self.n_frames
+            )));
+        }
+        let ns = self.n_state();
+        Ok((
+            &self.means[k * ns..(k + 1) * ns],
+            &self.covs[k * ns * ns..(k + 1) * ns * ns],
+        ))
+    }
+
     fn filter_smooth(
         &mut self,
         params: &Params,
@@ -418,6 +477,11 @@ impl<E: Emission> Tracker<E> {
         statistics: bool,
     ) -> Result<FilterStats> {
         let stats = self.filter(params, gate)?;
+        self.backward(params, statistics)?;
+        Ok(stats)
+    }
+
+    fn backward(&mut self, params: &Params, statistics: bool) -> Result<()> {
         let (ns, n) = (self.n_state(), self.em.n_state());
         self.acc = smoother::smooth_in_place(
             &mut self.means,
@@ -428,8 +492,9 @@ impl<E: Emission> Tracker<E> {
             statistics,
         )?;
         self.has_statistics = statistics;
+        self.filtered_only = false;
         self.extract_positions();
-        Ok(stats)
+        Ok(())
     }
 
     /// The M-step (Alg. 12) from the moments of the last [`Self::e_step`].

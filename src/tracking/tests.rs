@@ -541,3 +541,85 @@ fn smoothing_without_statistics_gives_the_same_moments_and_refuses_an_m_step() {
     let err = fast.m_step(&p).unwrap_err().to_string();
     assert!(err.contains("statistics"), "{err}");
 }
+
+/// The streaming smoother of long recordings: forward pass over segments keeping only the
+/// filtered moments at their ends, then the segments backwards, each refiltered from its
+/// checkpoint and smoothed from the next segment's first smoothed moments.
+#[test]
+fn segments_with_checkpoints_reproduce_the_whole_smoother() {
+    for order in [1, 2] {
+        let (em, x, mut p, n, n_x, t_len) = linear_problem(11);
+        let ns = order * n;
+        if order == 2 {
+            let mut q = Params::initial(vec![0.0; ns], n_x, 0.01);
+            q.mu0[..n].copy_from_slice(&p.mu0);
+            q.vx = p.vx.clone();
+            p = q;
+        }
+        let mut whole = Tracker::new(em.clone(), x.clone()).unwrap();
+        whole.set_order(order).unwrap();
+        whole.smooth(&p, None).unwrap();
+        let bounds = [0, 7, 10, 23, t_len];
+        let tracker = |a: usize, b: usize| {
+            let mut tr = Tracker::new(em.clone(), x[a * n_x..b * n_x].to_vec()).unwrap();
+            tr.set_order(order).unwrap();
+            tr
+        };
+        // forward: checkpoints at every boundary
+        let mut checkpoints = vec![(p.mu0.clone(), p.v0.clone())];
+        for w in bounds.windows(2) {
+            let mut tr = tracker(w[0], w[1]);
+            let (m, v) = checkpoints.last().unwrap().clone();
+            tr.filter(
+                &Params {
+                    mu0: m,
+                    v0: v,
+                    ..p.clone()
+                },
+                None,
+            )
+            .unwrap();
+            let (m, v) = tr.state_row(w[1] - w[0]).unwrap();
+            checkpoints.push((m.to_vec(), v.to_vec()));
+        }
+        // backward
+        let (wm, wv) = whole.state_moments();
+        let mut end: Option<(Vec<f64>, Vec<f64>)> = None;
+        for k in (0..bounds.len() - 1).rev() {
+            let (a, b) = (bounds[k], bounds[k + 1]);
+            let mut tr = tracker(a, b);
+            let (m, v) = checkpoints[k].clone();
+            let q = Params {
+                mu0: m,
+                v0: v,
+                ..p.clone()
+            };
+            let e = end.as_ref().map(|(m, v)| (m.as_slice(), v.as_slice()));
+            tr.filter(&q, None).unwrap();
+            tr.smooth_filtered(&q, e).unwrap();
+            let (sm, sv) = tr.state_moments();
+            for i in 0..(b - a + 1) * ns {
+                assert!(
+                    (sm[i] - wm[a * ns + i]).abs() < 1e-12,
+                    "order {order} mean {i}"
+                );
+            }
+            for i in 0..(b - a + 1) * ns * ns {
+                assert!(
+                    (sv[i] - wv[a * ns * ns + i]).abs() < 1e-12,
+                    "order {order} cov {i}"
+                );
+            }
+            let (m, v) = tr.state_row(0).unwrap();
+            end = Some((m.to_vec(), v.to_vec()));
+        }
+        let mut tr = tracker(0, 7);
+        assert!(tr.state_row(8).is_err());
+        assert!(tr.smooth_filtered(&p, None).is_err()); // no filter pass yet
+        tr.filter(&p, None).unwrap();
+        let bad = vec![0.0; ns + 1];
+        assert!(tr.smooth_filtered(&p, Some((&bad, &p.v0))).is_err());
+        tr.smooth_filtered(&p, None).unwrap();
+        assert!(tr.smooth_filtered(&p, None).is_err()); // already smoothed
+    }
+}
