@@ -42,7 +42,7 @@ def test_online_filter_equals_the_offline_forward_pass(data):
     m = _masked(det, lik)
     _, t0, r0 = _first_pose(rig, sk, m, norm)
     sm = StateMap(sk, norm, True)
-    mu0 = sm.from_pose(t0, r0)
+    mu0 = sm.start_state(t0, r0)
     lim = sk.joint_limits
     x = norm.normalize_pixels(m).transpose(1, 0, 2, 3)
     nt = _native.NativeTracker(

@@ -152,3 +152,30 @@ def test_joint_limit_table_is_the_papers(rat):
     np.testing.assert_allclose(deg[rat.bone_index("toe_right_002")], [[0, 0], [0, 0], [-35, 15]])
     np.testing.assert_allclose(deg[rat.bone_index("tail_003")], [[-90, 90], [-90, 90], [0, 0]])
     assert np.all(np.isinf(deg[rat.bone_index("spine_005")]))
+
+
+def test_start_state_moves_bounded_entries_off_the_flat_ends_of_the_limit_map():
+    # a single-frame fit that ended at a joint limit maps to |z| ~ 4 (from_pose moves it
+    # just inside), where the pose no longer depends on z and a filter started there stays
+    # stuck; the start moves bounded entries to |z| <= START_Z, nothing else
+    from acm_rs import datasets, models
+    from acm_rs.state import START_Z, StateMap
+
+    sk = datasets.individual_skeleton(models.rat(), seed=1)
+    sm = StateMap(sk)
+    t, r = datasets.smooth_motion(sk, 3, seed=2)
+    lim = sk.joint_limits
+    b = sk.joint_names.index("tail_002")
+    r[:, b, 0] = lim[b, 0, 0]  # at the lower limit
+    z, zs = sm.from_pose(t, r), sm.start_state(t, r)
+    bounded = sm.bounded
+    assert bounded.sum() == 44 and not bounded[:6].any()  # t and the global rotation are free
+    assert np.abs(z[:, bounded]).max() > 4 and np.abs(zs[:, bounded]).max() == START_Z
+    moved = z != zs
+    assert moved.any() and not moved[:, ~bounded].any()
+    assert np.all(np.abs(z[moved]) > START_Z) and np.all(np.abs(zs[moved]) == START_Z)
+    # the moved tail bone is now where the pose depends on it again
+    _, r2 = sm.to_pose(zs)
+    assert lim[b, 0, 0] + 0.2 * np.ptp(lim[b, 0]) < r2[0, b, 0] < np.mean(lim[b, 0])
+    # without limits nothing is bounded
+    assert not StateMap(sk, joint_limits=False).bounded.any()

@@ -61,7 +61,7 @@ def write_bundle(
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
     norm = normalization or default_normalization(rig, skeleton)
     _, t0, r0 = _first_pose(rig, skeleton, det, norm)
-    mu0 = StateMap(skeleton, norm, joint_limits).from_pose(t0, r0)
+    mu0 = StateMap(skeleton, norm, joint_limits).start_state(t0, r0)
     g = gate_threshold(gate)
     arrays = {
         "parents": skeleton.parents.astype(np.int64),

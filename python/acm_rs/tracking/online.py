@@ -127,7 +127,7 @@ class OnlineTracker:
         except ValueError:
             return False  # not enough detections yet
         mu0 = np.zeros(self.order * self._sm.n_state)
-        mu0[: self._sm.n_state] = self._sm.from_pose(t0, r0)
+        mu0[: self._sm.n_state] = self._sm.start_state(t0, r0)
         lim = self.skeleton.joint_limits
         p = self.params
         self._native = NativeOnlineTracker(

@@ -468,7 +468,7 @@ def track(
         return result
 
     f0, t0, r0 = _first_pose(rig, skeleton, det, norm)
-    mu0 = sm.from_pose(t0, r0)
+    mu0 = sm.start_state(t0, r0)
     x = norm.normalize_pixels(det).transpose(1, 0, 2, 3)  # (T, C, M, 2)
     lim = skeleton.joint_limits
 
