@@ -3,7 +3,8 @@ input from a memory-mapped file, output to HDF5; frames/s, peak RSS, and (option
 difference to the smoother of the whole recording with the same parameters.
 
     python benches/bench_long.py [--frames 40000] [--subset 20000] [--windows 10]
-                                 [--chunk 2000] [--burn-in 100] [--exact]
+                                 [--chunk 2000] [--burn-in 100] [--method chunked]
+                                 [--compare]
 
 The synthetic rat (4 cameras, DeepLabCut-like detections with 15 % missing and 1 % confident
 outliers, one camera out for 5 % of the recording) is generated in blocks straight into a
@@ -26,6 +27,7 @@ import acm_rs
 from acm_rs import datasets, models
 from acm_rs.demo import demo_rig
 from acm_rs.tracking import long as L
+from acm_rs.tracking.streaming import smooth_streaming
 
 
 def make_recording(folder: Path, sk, rig, n: int, block: int = 5000):
@@ -49,6 +51,31 @@ def make_recording(folder: Path, sk, rig, n: int, block: int = 5000):
     return (np.load(folder / f, mmap_mode="r") for f in ("det.npy", "lik.npy", "truth.npy"))
 
 
+def model_from_file(res: dict, info: dict, rig, sk) -> L._Model:
+    """The smoother's model from the parameters stored in a track_long file."""
+    from acm_rs.tracking.track import DEFAULT_GATE, gate_threshold
+
+    p = dict(res["params"])
+    rw = {k[3:]: p.pop(k) for k in list(p) if k.startswith("rw_")}
+    pc, rpc = p.pop("window_prior_cov"), rw.pop("window_prior_cov", None)
+    return L._Model(
+        rig, sk, acm_rs.tracking.default_normalization(rig, sk), True, 10,
+        gate_threshold(DEFAULT_GATE), 2 if info["motion"] == "velocity" else 1, p, pc,
+        0.9, None, rw or None, rpc,
+    )  # fmt: skip
+
+
+def report(name: str, res: dict, truth) -> None:
+    """Joint error (mm) against the truth, overall and per block of 1,000 frames."""
+    err = np.linalg.norm(res["joints"] - truth, axis=-1) * 10  # mm
+    per = np.nanmean(err, axis=1)
+    blocks = [np.nanmean(per[a : a + 1000]) for a in range(0, len(per), 1000)]
+    print(
+        f"  {name}: joints mean {np.nanmean(err):.3f} mm, median {np.nanmedian(err):.3f} mm; "
+        f"per 1,000 frames: {' '.join(f'{b:.2f}' for b in blocks)}"
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=40_000)
@@ -57,7 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--chunk", type=int, default=L.DEFAULT_CHUNK)
     ap.add_argument("--burn-in", type=int, default=L.DEFAULT_BURN_IN)
     ap.add_argument("--motion", default="auto", choices=["auto", "velocity", "random_walk"])
-    ap.add_argument("--exact", action="store_true", help="also the whole-recording smoother")
+    ap.add_argument("--method", default="chunked", choices=["chunked", "streaming"])
+    ap.add_argument("--compare", action="store_true",
+                    help="also the other smoother with the same parameters")  # fmt: skip
     ap.add_argument("--keep", help="keep the inputs and outputs in this folder")
     args = ap.parse_args(argv)
     warnings.simplefilter("default")
@@ -74,47 +103,47 @@ def main(argv: list[str] | None = None) -> int:
         info = acm_rs.track_long(
             rig, sk, det, folder / "poses.h5", likelihood=lik, subset=args.subset,
             n_windows=args.windows, chunk=args.chunk, burn_in=args.burn_in,
-            motion=args.motion, overwrite=True,
+            motion=args.motion, overwrite=True, method=args.method,
         )  # fmt: skip
         total = time.perf_counter() - t0
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         res = acm_rs.read_chunked(folder / "poses.h5")
-        err = np.linalg.norm(res["joints"] - truth, axis=-1) * 10  # mm
         smooth_s = info["seconds_smoothing"]
         print(
-            f"motion {info['motion']}, EM {len(info['em_history'])} iterations on "
-            f"{len(info['em_windows'])} windows: {info['seconds_em']:.0f} s; smoothing "
-            f"{smooth_s:.0f} s = {args.frames / smooth_s:.0f} frames/s "
-            f"({info['windows_recomputed']} windows recomputed); total {total:.0f} s"
+            f"{args.method}: motion {info['motion']}, EM {len(info['em_history'])} iterations "
+            f"on {len(info['em_windows'])} windows: {info['seconds_em']:.0f} s; smoothing "
+            f"{smooth_s:.0f} s = {args.frames / smooth_s:.0f} frames/s; total {total:.0f} s; "
+            f"peak RSS {rss:.0f} MB (before tracking {rss0:.0f} MB)"
         )
-        print(
-            f"peak RSS {rss:.0f} MB (before tracking {rss0:.0f} MB); joints mean "
-            f"{np.nanmean(err):.3f} mm, median {np.nanmedian(err):.3f} mm; seam difference max "
-            f"{info['seam_difference_max']:.4f} SD, median "
-            f"{np.median(res['seam_difference']):.4f} SD"
-        )
-        if args.exact:
-            p = dict(res["params"])
-            rw = {k[3:]: p.pop(k) for k in list(p) if k.startswith("rw_")}
-            pc, rpc = p.pop("window_prior_cov"), rw.pop("window_prior_cov", None)
-            from acm_rs.tracking.track import DEFAULT_GATE, gate_threshold
-
-            model = L._Model(
-                rig, sk, acm_rs.tracking.default_normalization(rig, sk), True, 10,
-                gate_threshold(DEFAULT_GATE), 2 if info["motion"] == "velocity" else 1, p, pc,
-                0.9, None, rw or None, rpc,
-            )  # fmt: skip
+        if args.method == "chunked":
+            print(f"  {info['windows_recomputed']} windows recomputed; seam difference max "
+                  f"{info['seam_difference_max']:.4f} SD, median "
+                  f"{np.median(res['seam_difference']):.4f} SD")  # fmt: skip
+        else:
+            print(f"  forward pass {info['seconds_forward']:.0f} s; poorly fit frames "
+                  f"{info['poor_fit_frames']} {info['poor_fit'][:3]}")  # fmt: skip
+        report(args.method, res, truth)
+        if args.compare:
+            other = "chunked" if args.method == "streaming" else "streaming"
+            model = model_from_file(res, info, rig, sk)
+            (folder / "other.h5").unlink(missing_ok=True)
             t0 = time.perf_counter()
-            (folder / "exact.h5").unlink(missing_ok=True)
-            L.smooth_chunked(model, L._Source(det, lik), folder / "exact.h5", chunk=args.frames)
-            ex = acm_rs.read_chunked(folder / "exact.h5")
-            rel = np.abs(ex["joints"] - res["joints"]) / ex["joints_std"]
-            e2 = np.linalg.norm(ex["joints"] - truth, axis=-1) * 10
+            if other == "chunked":
+                L.smooth_chunked(model, L._Source(det, lik), folder / "other.h5",
+                                 chunk=args.chunk, burn_in=args.burn_in)  # fmt: skip
+            else:
+                smooth_streaming(model, L._Source(det, lik), folder / "other.h5",
+                                 segment=args.chunk,
+                                 typical_px=info["em_typical_px"])  # fmt: skip
+            ot = acm_rs.read_chunked(folder / "other.h5")
+            print(f"{other} with the same parameters: {time.perf_counter() - t0:.0f} s")
+            report(other, ot, truth)
+            ex, ch = (res, ot) if args.method == "streaming" else (ot, res)
+            rel = np.abs(ex["joints"] - ch["joints"]) / ex["joints_std"]
             print(
-                f"whole-recording smoother ({time.perf_counter() - t0:.0f} s): joints mean "
-                f"{np.nanmean(e2):.3f} mm; chunked - whole: max {np.nanmax(rel):.4f} SD, "
-                f"99.9th percentile {np.nanpercentile(rel, 99.9):.4f} SD, frames with a joint "
-                f"> 1 % SD: {np.mean(np.nanmax(rel, axis=(1, 2)) > 0.01) * 100:.2f} %"
+                f"chunked - streaming: max {np.nanmax(rel):.4f} SD, 99.9th percentile "
+                f"{np.nanpercentile(rel, 99.9):.4f} SD, frames with a joint > 1 % SD: "
+                f"{np.mean(np.nanmax(rel, axis=(1, 2)) > 0.01) * 100:.2f} %"
             )
     print(f"machine: {platform.machine()}, {platform.python_version()}")
     return 0

@@ -136,10 +136,14 @@ def _cmd_track_long(args: argparse.Namespace) -> int:
                   + table.replace("\n", "\n  "))  # fmt: skip
         ls = read_labels(args.dlc, individual=args.individual)
         points, lik, names = ls.points, ls.likelihood, ls.bodyparts
+    method = args.method or "chunked"
+    how = (
+        f"the streaming smoother in segments of {args.chunk}" if method == "streaming"
+        else f"chunks of {args.chunk} (+{args.burn_in} burn-in)"
+    )  # fmt: skip
     print(
         f"acm-rs track-long: {skeleton.name}, {len(rig)} cameras, {points.shape[1]} frames; "
-        f"EM on {args.windows} windows of {args.subset // args.windows} frames, then chunks "
-        f"of {args.chunk} (+{args.burn_in} burn-in) on "
+        f"EM on {args.windows} windows of {args.subset // args.windows} frames, then {how} on "
         f"{args.scheduler or f'{args.workers} threads'}"
     )
     info = track_long(
@@ -147,12 +151,15 @@ def _cmd_track_long(args: argparse.Namespace) -> int:
         joint_limits=not args.no_limits, motion=args.motion, subset=args.subset,
         n_windows=args.windows, chunk=args.chunk, burn_in=args.burn_in, tol=args.seam_tol,
         gate=None if args.no_gate else args.gate, client=args.scheduler, workers=args.workers,
-        overwrite=args.overwrite, progress=None,
+        overwrite=args.overwrite, progress=None, method=method, poor_fit=args.poor_fit,
+    )  # fmt: skip
+    detail = (
+        f"{info['poor_fit_frames']} poorly fit frames" if method == "streaming"
+        else f"largest seam difference {info['seam_difference_max']:.3g} SD"
     )  # fmt: skip
     print(
         f"  {info['motion']}, {len(info['em_history'])} EM iterations ({info['seconds_em']:.0f} s);"
-        f" smoothing {info['seconds_smoothing']:.0f} s; largest seam difference "
-        f"{info['seam_difference_max']:.3g} SD\n  wrote {info['path']}"
+        f" smoothing {info['seconds_smoothing']:.0f} s; {detail}\n  wrote {info['path']}"
     )
     return 0
 
@@ -337,12 +344,22 @@ def add_subcommands(sub) -> None:
     )  # fmt: skip
     t.add_argument("--subset", type=int, default=20000, help="frames for EM (20000)")
     t.add_argument("--windows", type=int, default=10, help="EM windows, evenly spread (10)")
-    t.add_argument("--chunk", type=int, default=2000, help="frames per chunk (2000)")
+    t.add_argument(
+        "--method", choices=["streaming", "chunked"],
+        help="chunked (default): overlapping windows, parallel in time, on threads or "
+        "--scheduler; streaming: the exact smoother from checkpointed filter states "
+        "(sequential forward pass)",
+    )  # fmt: skip
+    t.add_argument("--chunk", type=int, default=2000,
+                   help="frames per segment or chunk (2000)")  # fmt: skip
+    t.add_argument("--poor-fit", type=float, default=4.0,
+                   help="streaming: report stretches reprojecting worse than this multiple of "
+                   "a typical frame (4)")  # fmt: skip
     t.add_argument("--burn-in", type=int, default=100,
-                   help="extra frames on each side of a chunk (100)")  # fmt: skip
+                   help="chunked: extra frames on each side of a chunk (100)")  # fmt: skip
     t.add_argument(
         "--seam-tol", type=float, default=0.05,
-        help="largest seam difference between chunks in posterior SDs before the burn-in "
+        help="chunked: largest seam difference between chunks in posterior SDs before the burn-in "
         "is doubled (0.05)",
     )  # fmt: skip
     t.add_argument("--workers", type=int, default=2, help="threads without --scheduler (2)")

@@ -1,0 +1,217 @@
+"""The exact smoother of a whole recording in bounded memory (issue 16 item 1; beyond the
+paper): checkpointed filtered states with recomputation.
+
+With Θ fixed, the smoother of a recording (Alg. 7 + 9) needs every frame's filtered moments
+in the backward pass: ``(T+1) (order · n)² · 8`` bytes, 58 GB for an hour of the rat at 200
+fps under the velocity model. Instead:
+
+1. **Forward** (sequential): the recording is filtered segment by segment (``segment``
+   frames each); only the filtered moments at each segment's end are kept (the checkpoints,
+   ``(order · n)² · 8`` bytes each).
+2. **Backward** (segments in reverse): each segment is filtered again from its checkpoint —
+   the same numbers as in step 1 — and smoothed backwards (Alg. 8) starting from the
+   smoothed moments at the start of the next segment (``NativeTracker.smooth_filtered``).
+
+The result equals the smoother of the whole recording to rounding (tested); it costs a
+second forward pass, and the refiltering of the next segments runs in parallel with the
+backward pass of the current one. Memory: a few segments' moments (``segment · (order ·
+n)² · 8`` bytes each, 160 MB for the rat's velocity state and the defaults) plus the
+checkpoints (T / segment of them).
+
+**Sequences.** The filter starts at the first frame with enough detections (the sec. 4.7
+fit, broad prior); segments before it without any such frame are written as NaN.
+
+**Poorly fit stretches are reported, not hidden.** Every frame's 90th percentile
+reprojection error of the filtered pose is stored (``filtered_px``; a percentile that sees a
+tail that is off, which the median does not); stretches of ``POOR_FRAMES`` or more frames
+above ``poor_fit`` × the typical error (the EM windows') are listed in
+``info["poor_fit"]`` with a warning (a camera moved, another animal, a movement the fixed
+Θ cannot follow).
+
+Under the velocity model, segments with ``HINT_GAP`` frames without detections linearise
+about the random walk's posterior of that segment (as the chunked smoother's windows do).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .._version import __version__
+from ..state import StateMap
+from .track import _on_terminal
+from .windows import _H5Writer, _Model, _normalized, _Source, _window_prior, frame_px, set_hint
+
+#: Frames per segment of the streaming smoother.
+DEFAULT_SEGMENT = 2000
+#: A poorly fit stretch has at least this many consecutive frames ...
+POOR_FRAMES = 10
+#: ... whose reprojection error (px, :func:`frame_px`) is this multiple of a typical frame's.
+DEFAULT_POOR_FIT = 4.0
+
+
+@dataclass
+class _Segment:
+    a: int
+    b: int
+    mu: np.ndarray  # checkpoint: filtered moments before frame a (or a sequence's prior)
+    cov: np.ndarray
+    last: bool = False  # its backward pass starts from its own filtered end
+
+
+def _filtered(model: _Model, source: _Source, seg: _Segment):
+    """Filter one segment from its checkpoint → (tracker, detections in skeleton order,
+    the filter's counts)."""
+    det = model.detections(*source.window(seg.a, seg.b))
+    x = _normalized(model.norm, det)
+    native = model.tracker(x)
+    set_hint(model, native, det, x, seg.mu)
+    p = model.params
+    stats = native.e_step(seg.mu, seg.cov, p["Vz"], p["Vx_diag"], model.gate, smooth=False)
+    return native, det, stats
+
+
+def poor_stretches(px: np.ndarray, limit: float, run: int = POOR_FRAMES) -> list[tuple[int, int]]:
+    """Frame ranges ``[(start, stop)]`` of at least ``run`` consecutive frames with
+    ``px > limit`` (NaN counts as fine: no detections to judge by)."""
+    bad = np.concatenate([[False], np.nan_to_num(px, nan=0.0) > limit, [False]])
+    edges = np.flatnonzero(np.diff(bad.astype(np.int8)))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= run]
+
+
+def smooth_streaming(
+    model: _Model,
+    source: _Source,
+    out: Path,
+    *,
+    segment: int = DEFAULT_SEGMENT,
+    poor_fit: float | None = DEFAULT_POOR_FIT,
+    typical_px: float | None = None,
+    workers: int = 2,
+    info: dict | None = None,
+    progress: bool | None = False,
+) -> dict:
+    """Smooth a whole recording with fixed parameters exactly, in bounded memory (module
+    docstring), writing the HDF5 file ``out`` (the layout of :func:`acm_rs.track_long`, plus
+    ``filtered_px (T,)``, each frame's 90th percentile reprojection error of the filtered
+    pose);
+    returns the run's info.
+
+    ``poor_fit``: report stretches of ``POOR_FRAMES`` frames that reproject further than
+    ``poor_fit × typical_px`` (None: do not). ``typical_px``: a typical frame's 90th
+    percentile reprojection error (default: the median over the first segment's frames)."""
+    t_start = time.perf_counter()
+    T = source.n_frames
+    if segment < 2:
+        raise ValueError(f"segment must be >= 2 frames, got {segment}")
+    if poor_fit is not None and not poor_fit > 1.0:
+        raise ValueError(f"poor_fit must be > 1 (a multiple of the typical error), got {poor_fit}")
+    sm = StateMap(model.skeleton, model.norm, model.joint_limits)
+    n = sm.n_state
+    show = _on_terminal(progress)
+    writer = _H5Writer(out, T, model.skeleton, len(model.rig), segment)
+    try:
+        filtered_px = writer.f.create_dataset(
+            "filtered_px", (T,), dtype="f8", chunks=(max(1, min(segment, T)),), fillvalue=np.nan
+        )
+        # -- forward: checkpoints --------------------------------------------------------
+        segs: list[_Segment] = []
+        a, prior = 0, None
+        typical = typical_px if typical_px is not None and math.isfinite(typical_px) else None
+        while a < T:
+            b = min(a + segment, T)
+            if prior is None:
+                det = model.detections(*source.window(a, b))
+                mu = _window_prior(model, det)
+                if mu is None:  # nothing to start from in these frames
+                    a = b
+                    continue
+                prior = (mu, model.prior_cov)
+            seg = _Segment(a, b, prior[0], prior[1])
+            native, det, _ = _filtered(model, source, seg)
+            px = frame_px(model, sm, native.means()[1:, :n], det)
+            if typical is None and np.isfinite(px).any():
+                typical = float(np.nanmedian(px))
+            filtered_px[a:b] = px
+            segs.append(seg)
+            prior = native.state_row(-1)
+            a = b
+            if show:
+                print(f"\rfiltered {a}/{T} frames", end="", file=sys.stderr, flush=True)
+            del native
+        if segs:
+            segs[-1].last = True
+        limit = None if poor_fit is None or typical is None else poor_fit * typical
+        poor = [] if limit is None else poor_stretches(filtered_px[:], limit)
+        t_forward = time.perf_counter() - t_start
+        # -- backward: refilter (in parallel, ahead) and smooth --------------------------
+        totals: dict[str, float] = {}
+        with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+            jobs = {}
+            order = list(range(len(segs) - 1, -1, -1))
+
+            def ahead(i: int) -> None:
+                if i < len(order) and order[i] not in jobs:
+                    jobs[order[i]] = pool.submit(_filtered, model, source, segs[order[i]])
+
+            for i in range(max(1, workers)):
+                ahead(i)
+            end = None
+            for i, k in enumerate(order):
+                native, _, stats = jobs.pop(k).result()
+                for key, v in stats.items():
+                    totals[key] = totals.get(key, 0.0) + float(v)
+                ahead(i + max(1, workers))
+                seg, p = segs[k], model.params
+                native.smooth_filtered(seg.mu, seg.cov, p["Vz"], p["Vx_diag"],
+                                       end=None if seg.last else end)  # fmt: skip
+                end = native.state_row(0)
+                poses, joints, markers, joints_std, markers_std = native.posterior()
+                status = native.mask()[..., 0].transpose(1, 0, 2)
+                res = {
+                    "joints": joints, "joints_std": joints_std, "markers": markers,
+                    "markers_std": markers_std, "poses": poses, "status": status,
+                }  # fmt: skip
+                writer.write(seg.a, seg.b, res, seg.a)
+                del native, res
+                if show:
+                    print(f"\rsmoothed {len(order) - i - 1} segments left  ", end="",
+                          file=sys.stderr, flush=True)  # fmt: skip
+        if show:
+            print(file=sys.stderr)
+        if poor:
+            frames = sum(b - a for a, b in poor)
+            warnings.warn(
+                f"{len(poor)} stretch(es) ({frames} frames, first {poor[:3]}) where the "
+                f"filtered poses reproject > {limit:.3g} px ({poor_fit} x a typical frame's "
+                f"{typical:.3g} px) for {POOR_FRAMES}+ frames: a moved camera, another animal, "
+                "or movement the fixed parameters cannot follow (dataset filtered_px)",
+                stacklevel=2,
+            )
+        run = {
+            "segment": int(segment), "n_frames": T, "n_segments": len(segs),
+            "poor_fit": poor[:100], "poor_fit_frames": sum(b - a for a, b in poor),
+            "poor_fit_factor": poor_fit, "poor_fit_px": None if limit is None else float(limit),
+            "typical_px": typical,
+            "seconds_forward": t_forward, "seconds_smoothing": time.perf_counter() - t_start,
+            "scheduler": f"threads({workers})", "stats": totals,
+            "acm_rs_version": __version__,
+        }  # fmt: skip
+        stored = dict(info or {}) | run
+        stored |= {"seam_frames": [], "seam_difference": [], "burn_in": []}
+        stored_params = model.params | {"window_prior_cov": model.prior_cov}
+        if model.rw_params is not None:
+            stored_params |= {f"rw_{k}": v for k, v in model.rw_params.items()}
+            stored_params["rw_window_prior_cov"] = model.rw_prior_cov
+        writer.close(stored, stored_params)
+        return dict(info or {}) | run
+    except BaseException:
+        writer.abort()
+        raise

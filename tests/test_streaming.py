@@ -1,0 +1,110 @@
+"""The exact streaming smoother of long recordings (issue 16 item 1): checkpointed filtered
+states with recomputation must reproduce the smoother of the whole recording, restart where
+the filter has lost the animal, and never leave a partial file."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import acm_rs
+from acm_rs import datasets, models
+from acm_rs.demo import demo_rig
+from acm_rs.tracking import long as L
+from acm_rs.tracking import streaming as S
+from acm_rs.tracking.track import DEFAULT_GATE, default_normalization, gate_threshold
+
+N = 500
+
+
+@pytest.fixture(scope="module")
+def case():
+    sk = datasets.individual_skeleton(models.rat(), seed=1)
+    rig = demo_rig()
+    t, r = datasets.smooth_motion(sk, N, seed=14)
+    det, lik = datasets.dlc_like_detections(rig, sk, t, r, missing=0.15, outliers=0.01, seed=15)
+    det[2, 150:330] = np.nan  # a camera out across two segment boundaries
+    norm = default_normalization(rig, sk)
+    stub = L._Model(rig, sk, norm, True, 10, None, 1, {}, np.zeros((0, 0)), 0.9)
+    wins = L.subset_windows(N, 300, 2)
+    fit = L.learn_windows(
+        rig, sk, [stub.detections(det[:, a:b], lik[:, a:b]) for a, b in wins], norm,
+        motion="random_walk", windows=wins,
+    )  # fmt: skip
+    model = L._Model(
+        rig, sk, norm, True, 10, gate_threshold(DEFAULT_GATE), 1, fit.params, fit.prior_cov, 0.9
+    )
+    truth = sk.forward(t, r)[0]
+    return {"sk": sk, "rig": rig, "det": det, "lik": lik, "model": model, "fit": fit,
+            "truth": truth}  # fmt: skip
+
+
+def _stream(case, path, det=None, **kw):
+    src = L._Source(case["det"] if det is None else det, case["lik"])
+    return S.smooth_streaming(case["model"], src, path, **kw)
+
+
+def test_segments_reproduce_the_smoother_of_the_whole_recording(case, tmp_path):
+    # one window over the whole recording is the exact smoother; the segments' checkpoints
+    # and backward starts must give the same numbers (boundaries at 130, 260, 390 cut
+    # through the camera outage)
+    whole = L.smooth_window(case["model"], case["det"], case["lik"])
+    info = _stream(case, tmp_path / "s.h5", segment=130, poor_fit=None)
+    out = acm_rs.read_chunked(tmp_path / "s.h5")
+    assert info["n_segments"] == 4
+    for k in ("joints", "joints_std", "markers", "markers_std"):
+        np.testing.assert_allclose(out[k], whole[k], rtol=0, atol=1e-9, err_msg=k)
+    np.testing.assert_array_equal(out["status"], whole["status"])
+    assert info["stats"]["used"] == whole["stats"]["used"]
+    err = np.linalg.norm(out["joints"] - case["truth"], axis=-1).mean()
+    assert err < 0.2  # cm: the smoother actually tracks
+
+
+def test_poorly_fit_stretches_are_reported(case, tmp_path):
+    # every camera's detections shifted by 40 px in frames 300-360 (as if the rig had been
+    # bumped): no pose fits them, and it must be said, with the frames
+    det = case["det"].copy()
+    det[:, 300:360] += 40.0
+    with pytest.warns(UserWarning, match="reproject"):
+        info = _stream(case, tmp_path / "u.h5", det=det, segment=200, typical_px=2.0)
+    (a, b), *_ = info["poor_fit"]
+    assert 295 <= a <= 305 and 355 <= b <= 375, info["poor_fit"]
+    px = acm_rs.read_chunked(tmp_path / "u.h5")["info"]
+    assert px["poor_fit"] == [list(s) for s in info["poor_fit"]]
+    # the clean recording has none
+    info = _stream(case, tmp_path / "c.h5", segment=200, typical_px=2.0)
+    assert info["poor_fit"] == []
+
+
+def test_poor_stretches():
+    px = np.array([1, 9, 9, 9, 1, 9, 9, np.nan, 9, 9, 9, 9], float)
+    assert S.poor_stretches(px, 5.0, run=3) == [(1, 4), (8, 12)]
+    assert S.poor_stretches(px, 10.0, run=1) == []
+
+
+def test_frames_before_any_detections_are_nan(case, tmp_path):
+    det = case["det"].copy()
+    det[:, :120] = np.nan
+    _stream(case, tmp_path / "e.h5", det=det, segment=100, poor_fit=None)
+    out = acm_rs.read_chunked(tmp_path / "e.h5")
+    assert np.isnan(out["joints"][:100]).all() and np.isfinite(out["joints"][100:]).all()
+
+
+def test_failure_leaves_no_file(case, tmp_path, monkeypatch):
+    def boom(*a, **k):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(S, "frame_px", boom)
+    with pytest.raises(RuntimeError, match="boom"):
+        _stream(case, tmp_path / "f.h5", segment=200)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_arguments_are_refused(case, tmp_path):
+    with pytest.raises(ValueError, match="segment"):
+        _stream(case, tmp_path / "a.h5", segment=1)
+    with pytest.raises(ValueError, match="poor_fit"):
+        _stream(case, tmp_path / "a.h5", poor_fit=0.5)
+    with pytest.raises(ValueError, match="Dask"):
+        acm_rs.track_long(case["rig"], case["sk"], case["det"], tmp_path / "x.h5",
+                          method="streaming", client="tcp://nowhere:1")  # fmt: skip
