@@ -191,6 +191,10 @@ def test_command_line_with_memory_mapped_input(case, tmp_path):
     res = acm_rs.read_chunked(out)
     assert np.mean(np.linalg.norm(res["joints"] - case["truth"], axis=-1)) < 0.15
     assert main(argv) != 0  # exists: refused without --overwrite
+    assert main([*argv, "--overwrite", "--method", "streaming"]) == 0
+    res = acm_rs.read_chunked(out)
+    assert res["info"]["method"] == "ukf-streaming" and res["info"]["n_segments"] == 2
+    assert np.mean(np.linalg.norm(res["joints"] - case["truth"], axis=-1)) < 0.15
 
 
 def test_motion_blocks_join_without_a_jump(case):
