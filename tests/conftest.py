@@ -80,3 +80,34 @@ def small_skeleton() -> acm_rs.Skeleton:
         name="small",
         units="cm",
     )
+
+
+def long_recording_case(n: int, seed: int, outage: tuple[int, int]) -> dict:
+    """A synthetic rat recording for the long-recording smoothers (tests/test_long.py,
+    tests/test_streaming.py): ``n`` frames, DeepLabCut-like detections, camera 2 out for the
+    frames ``outage``, Θ learned by EM on two windows (random walk), and the smoother's
+    model with the default gate."""
+    from acm_rs import datasets, models
+    from acm_rs.demo import demo_rig
+    from acm_rs.tracking import long as L
+    from acm_rs.tracking.track import DEFAULT_GATE, default_normalization, gate_threshold
+
+    sk = datasets.individual_skeleton(models.rat(), seed=1)
+    rig = demo_rig()
+    t, r = datasets.smooth_motion(sk, n, seed=seed)
+    det, lik = datasets.dlc_like_detections(
+        rig, sk, t, r, missing=0.15, outliers=0.01, seed=seed + 1
+    )
+    det[2, outage[0] : outage[1]] = np.nan
+    norm = default_normalization(rig, sk)
+    stub = L._Model(rig, sk, norm, True, 10, None, 1, {}, np.zeros((0, 0)), 0.9)
+    wins = L.subset_windows(n, 300, 2)
+    fit = L.learn_windows(
+        rig, sk, [stub.detections(det[:, a:b], lik[:, a:b]) for a, b in wins], norm,
+        motion="random_walk", windows=wins,
+    )  # fmt: skip
+    model = L._Model(
+        rig, sk, norm, True, 10, gate_threshold(DEFAULT_GATE), 1, fit.params, fit.prior_cov, 0.9
+    )
+    return {"sk": sk, "rig": rig, "det": det, "lik": lik, "truth": sk.forward(t, r)[0],
+            "model": model, "fit": fit}  # fmt: skip

@@ -7,36 +7,19 @@ import pickle
 
 import numpy as np
 import pytest
+from conftest import long_recording_case
 
 import acm_rs
-from acm_rs import datasets, models
-from acm_rs.demo import demo_rig
+from acm_rs import datasets
 from acm_rs.tracking import long as L
-from acm_rs.tracking.track import DEFAULT_GATE, default_normalization, gate_threshold
 
 N = 600
 
 
 @pytest.fixture(scope="module")
 def case():
-    sk = datasets.individual_skeleton(models.rat(), seed=1)
-    rig = demo_rig()
-    t, r = datasets.smooth_motion(sk, N, seed=4)
-    det, lik = datasets.dlc_like_detections(rig, sk, t, r, missing=0.15, outliers=0.01, seed=5)
-    det[2, 250:420] = np.nan  # a camera out for a while, across a seam
-    truth = sk.forward(t, r)[0]
-    norm = default_normalization(rig, sk)
-    stub = L._Model(rig, sk, norm, True, 10, None, 1, {}, np.zeros((0, 0)), 0.9)
-    wins = L.subset_windows(N, 300, 2)
-    fit = L.learn_windows(
-        rig, sk, [stub.detections(det[:, a:b], lik[:, a:b]) for a, b in wins], norm,
-        motion="random_walk", windows=wins,
-    )  # fmt: skip
-    model = L._Model(
-        rig, sk, norm, True, 10, gate_threshold(DEFAULT_GATE), 1, fit.params, fit.prior_cov, 0.9
-    )
-    return {"sk": sk, "rig": rig, "det": det, "lik": lik, "truth": truth, "model": model,
-            "fit": fit}  # fmt: skip
+    # a camera out for a while, across a seam
+    return long_recording_case(N, seed=4, outage=(250, 420))
 
 
 def _smooth(case, path, **kw):

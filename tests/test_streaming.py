@@ -6,37 +6,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import long_recording_case
 
 import acm_rs
-from acm_rs import datasets, models
-from acm_rs.demo import demo_rig
 from acm_rs.tracking import long as L
 from acm_rs.tracking import streaming as S
-from acm_rs.tracking.track import DEFAULT_GATE, default_normalization, gate_threshold
 
 N = 500
 
 
 @pytest.fixture(scope="module")
 def case():
-    sk = datasets.individual_skeleton(models.rat(), seed=1)
-    rig = demo_rig()
-    t, r = datasets.smooth_motion(sk, N, seed=14)
-    det, lik = datasets.dlc_like_detections(rig, sk, t, r, missing=0.15, outliers=0.01, seed=15)
-    det[2, 150:330] = np.nan  # a camera out across two segment boundaries
-    norm = default_normalization(rig, sk)
-    stub = L._Model(rig, sk, norm, True, 10, None, 1, {}, np.zeros((0, 0)), 0.9)
-    wins = L.subset_windows(N, 300, 2)
-    fit = L.learn_windows(
-        rig, sk, [stub.detections(det[:, a:b], lik[:, a:b]) for a, b in wins], norm,
-        motion="random_walk", windows=wins,
-    )  # fmt: skip
-    model = L._Model(
-        rig, sk, norm, True, 10, gate_threshold(DEFAULT_GATE), 1, fit.params, fit.prior_cov, 0.9
-    )
-    truth = sk.forward(t, r)[0]
-    return {"sk": sk, "rig": rig, "det": det, "lik": lik, "model": model, "fit": fit,
-            "truth": truth}  # fmt: skip
+    # a camera out across two segment boundaries
+    return long_recording_case(N, seed=14, outage=(150, 330))
 
 
 def _stream(case, path, det=None, **kw):
