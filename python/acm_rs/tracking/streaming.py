@@ -101,8 +101,7 @@ def smooth_streaming(
     """Smooth a whole recording with fixed parameters exactly, in bounded memory (module
     docstring), writing the HDF5 file ``out`` (the layout of :func:`acm_rs.track_long`, plus
     ``filtered_px (T,)``, each frame's 90th percentile reprojection error of the filtered
-    pose);
-    returns the run's info.
+    pose); returns the run's info.
 
     ``poor_fit``: report stretches of ``POOR_FRAMES`` frames that reproject further than
     ``poor_fit × typical_px`` (None: do not). ``typical_px``: a typical frame's 90th
