@@ -20,8 +20,8 @@ Two steps, each with memory that does not grow with the recording's length ``T``
    the single-frame fit (sec. 4.7) of the window's first frame with a broad prior. The
    filter forgets that start and the smoother the window's end within a few frames of
    detections, so the cores equal the smoother of the whole recording up to a small
-   difference — which is **checked**, not assumed: neighbouring windows overlap, and at each seam their estimates of the two frames
-   either side must agree within ``tol`` of the posterior SD (default 5 %); where they do not
+   difference — which is **checked**, not assumed: neighbouring windows overlap, and at
+   each seam their estimates of the two frames either side must agree within ``tol`` of the posterior SD (default 5 %); where they do not
    (a stretch without detections across the seam), both windows are recomputed with twice
    the burn-in, up to ``max_burn_in`` and while each doubling at least halves the
    difference, and a seam that still disagrees is reported
