@@ -14,21 +14,20 @@ Two steps, each with memory that does not grow with the recording's length ``T``
 
 2. **Smoothing with Θ fixed**: by default in chunks (below); ``method="streaming"`` runs the
    exact smoother of the whole recording from checkpointed filter states instead
-   (:mod:`acm_rs.tracking.streaming`). **The chunked smoother** (:func:`smooth_chunked`):
-   the recording is cut into cores of ``chunk`` frames; each core is filtered and smoothed
-   (Alg. 7 + 9) over a window extended by ``burn_in`` frames on both sides, starting from
-   the single-frame fit (sec. 4.7) of the window's first frame with a broad prior. The
-   filter forgets that start and the smoother the window's end within a few frames of
-   detections, so the cores equal the smoother of the whole recording up to a small
-   difference — which is **checked**, not assumed: neighbouring windows overlap, and at
-   each seam their estimates of the two frames either side must agree within ``tol`` of the posterior SD (default 5 %); where they do not
-   (a stretch without detections across the seam), both windows are recomputed with twice
-   the burn-in, up to ``max_burn_in`` and while each doubling at least halves the
-   difference, and a seam that still disagrees is reported
-   (``info["seams_disagreeing"]``, a warning). Cores are independent: they run in parallel
-   on a thread pool or on a Dask cluster (``client``) with identical results, and are
-   written to an HDF5 file in order as they are done (atomically: a temporary file renamed
-   at the end).
+   (:mod:`acm_rs.tracking.streaming`). **The chunked smoother** (:func:`smooth_chunked`): the
+   recording is cut into cores of ``chunk`` frames; each core is filtered and smoothed (Alg. 7 +
+   9) over a window extended by ``burn_in`` frames on both sides, starting from the single-frame
+   fit (sec. 4.7) of the window's first frame with a broad prior. The filter forgets that start
+   and the smoother the window's end within a few frames of detections, so the cores equal the
+   smoother of the whole recording up to a small difference — which is **checked**, not assumed:
+   neighbouring windows overlap, and at each seam their estimates of the two frames either side
+   must agree within ``tol`` of the posterior SD (default 5 %); where they do not (a stretch
+   without detections across the seam), both windows are recomputed with twice the burn-in, up
+   to ``max_burn_in`` and while each doubling at least halves the difference, and a seam that
+   still disagrees is reported (``info["seams_disagreeing"]``, a warning). Cores are
+   independent: they run in parallel on a thread pool or on a Dask cluster (``client``) with
+   identical results, and are written to an HDF5 file in order as they are done (atomically: a
+   temporary file renamed at the end).
 
 Memory: the inputs are read one window at a time, so ``detections`` may be a
 ``numpy.memmap``, an ``h5py`` or ``zarr`` array (anything sliced as ``a[:, t0:t1]``); each
