@@ -62,6 +62,33 @@ def test_a_margin_shorter_than_a_gap_is_refused():
         fill_chunked(G, chunk=100, margin=2)
 
 
+def test_windowed_fill_equals_one_pass(long_case):
+    """fill(window=...): the model from the whole sequence, the smoothing window by window."""
+    X, G = long_case
+    one = fill(G, window=None, full_output=True)
+    win = fill(G, window=500, full_output=True)
+    assert (one.info["windows"], win.info["windows"]) == (1, 6)
+    assert win.info["window_margin"] >= longest_gap(G)
+    assert (win.info["dim"], win.info["r"]) == (one.info["dim"], one.info["r"])
+    scale = np.nanmax(np.abs(G))
+    # the memoised smoother shares covariances within memo_tol (1e-6) and the windows share
+    # different ones: differences at that level, far below any marker error
+    np.testing.assert_allclose(win.filled, one.filled, rtol=0, atol=1e-5 * scale)
+    np.testing.assert_allclose(win.std, one.std, rtol=0, atol=1e-5 * np.max(one.std))
+    exact = dict(memo_tol=0.0)
+    np.testing.assert_allclose(
+        fill(G, window=500, **exact), fill(G, window=None, **exact), rtol=0, atol=1e-9 * scale
+    )
+    # "auto" windows only long sequences
+    assert fill(G, full_output=True).info["windows"] == 1
+
+
+@pytest.mark.parametrize("bad", [0, -5, 2.5, "big", True])
+def test_window_must_be_a_positive_number_of_frames(long_case, bad):
+    with pytest.raises(ValueError, match="window must be"):
+        fill(long_case[1], window=bad)
+
+
 def test_command_line_fills_in_windows(long_case, tmp_path):
     from acm_rs.cli import main
     from acm_rs.gapfill.io import read, write
@@ -71,7 +98,7 @@ def test_command_line_fills_in_windows(long_case, tmp_path):
     write(tmp_path / "in.trc", G, labels, rate=100.0)
     src = read(tmp_path / "in.trc").xyz
     assert main(["gapfill", str(tmp_path / "in.trc"), "-o", str(tmp_path / "out.trc"),
-                 "--chunk", "700"]) == 0  # fmt: skip
+                 "--window", "700"]) == 0  # fmt: skip
     got = read(tmp_path / "out.trc").xyz
-    want = fill_chunked(src, chunk=700, empty="skip")
+    want = fill(src, window=None, empty="skip")  # the windows give the one-pass fill
     np.testing.assert_allclose(got, want, atol=1e-3)  # TRC keeps a few decimals

@@ -135,7 +135,10 @@ def gapfill_fill(
     want_std: bool,
     memo_tol: float,
     seed: int,
+    window: int | None = None,
 ) -> tuple[F64, F64 | None, dict[str, object]]: ...
+
+GAPFILL_AUTO_WINDOW: int
 
 class NativeCalibration:
     """Eq. 7 residuals and exact CSR Jacobian (layout in src/calibration.rs)."""

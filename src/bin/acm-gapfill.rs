@@ -244,6 +244,11 @@ fn run() -> Result<String, String> {
         let labels = csv_labels(csv.header.as_deref(), csv.d);
         (csv.x, csv.t, csv.d, labels, None, "mm".to_string(), None)
     };
+    // Long recordings are smoothed in windows (the same fill, memory of one window).
+    let opts = Options {
+        window: (t > 2 * gapfill::AUTO_WINDOW).then_some(gapfill::AUTO_WINDOW),
+        ..opts
+    };
     let f = gapfill::fill(&x, t, d, &opts).map_err(|e| format!("{input}: {e}"))?;
     // A fill never changes an observed coordinate (also of a partly observed point); a point
     // is filled where any of its coordinates was missing and now has a value.

@@ -180,8 +180,109 @@ fn run(
 
 /// Smooths `seq` with a fixed `model` (no learning) and back-projects (Algorithm 1, RTS part
 /// and last loop): the smoothed sequence and, if `opts.want_std`, the predictive standard
-/// deviations.
+/// deviations. With `opts.window`, window by window ([`smooth_windows`]).
 fn smooth_with(
+    seq: &Seq<'_>,
+    model: &Model,
+    opts: &Options,
+    info: &mut Info,
+) -> Result<(Vec<f64>, Option<Vec<f64>>)> {
+    match opts.window {
+        Some(w) if w < seq.t => smooth_windows(seq, model, opts, info, w),
+        _ => {
+            info.windows = 1;
+            smooth_pass(seq, model, opts, info)
+        }
+    }
+}
+
+/// Smallest number of observed frames of context beyond the longest gap that a window keeps
+/// on each side of its core.
+pub const WINDOW_BURN_IN: usize = 200;
+
+/// Relative influence below which a frame outside a window is ignored: the burn-in is the
+/// number of frames `n` with `μⁿ ≤ WINDOW_TOL` for the smoother's slowest decay `μ`
+/// ([`smoother::slowest_decay`]).
+pub const WINDOW_TOL: f64 = 1e-12;
+
+/// Context (frames) on each side of a window's core: the longest gap of any coordinate, so
+/// every gap that touches a core lies inside its window, plus a burn-in of observed frames
+/// after which the frames beyond have influence below [`WINDOW_TOL`] (at least
+/// [`WINDOW_BURN_IN`]). `None` when no burn-in is short enough (a direction of the subspace
+/// that the markers barely see): then the sequence is smoothed whole.
+pub fn window_margin(seq: &Seq<'_>, model: &Model) -> Result<Option<usize>> {
+    let mu = smoother::slowest_decay(model)?;
+    let burn = if mu <= 0.0 {
+        0.0
+    } else {
+        WINDOW_TOL.ln() / mu.ln()
+    };
+    if !(burn.is_finite() && burn < seq.t as f64) {
+        return Ok(None);
+    }
+    let (t, d) = (seq.t, seq.d);
+    let mut run = vec![0usize; d];
+    let mut longest = 0;
+    for i in 0..t {
+        for (j, r) in run.iter_mut().enumerate() {
+            if seq.x[i * d + j].is_nan() {
+                *r += 1;
+                longest = longest.max(*r);
+            } else {
+                *r = 0;
+            }
+        }
+    }
+    Ok(Some(longest + (burn.ceil() as usize).max(WINDOW_BURN_IN)))
+}
+
+/// [`smooth_pass`] over windows of `w` frames plus [`window_margin`] frames on each side,
+/// one window at a time (peak memory: one window), keeping each window's core.
+fn smooth_windows(
+    seq: &Seq<'_>,
+    model: &Model,
+    opts: &Options,
+    info: &mut Info,
+    w: usize,
+) -> Result<(Vec<f64>, Option<Vec<f64>>)> {
+    let (t, d) = (seq.t, seq.d);
+    let Some(margin) = window_margin(seq, model)? else {
+        info.windows = 1;
+        return smooth_pass(seq, model, opts, info);
+    };
+    let mut y = vec![0.0; t * d];
+    let mut std = opts.want_std.then(|| vec![0.0; t * d]);
+    let (mut distinct, mut low_rank, mut windows) = (0, true, 0);
+    for a in (0..t).step_by(w) {
+        let b = (a + w).min(t);
+        let (w0, w1) = (a.saturating_sub(margin), (b + margin).min(t));
+        // A coordinate may be unobserved in a window: the smoother handles that, so the
+        // window is not re-validated (Seq::new would refuse it).
+        let win = Seq {
+            x: &seq.x[w0 * d..w1 * d],
+            t: w1 - w0,
+            d,
+        };
+        let mut wi = Info::default();
+        let (wy, ws) = smooth_pass(&win, model, opts, &mut wi)?;
+        let core = (a - w0) * d..(b - w0) * d;
+        y[a * d..b * d].copy_from_slice(&wy[core.clone()]);
+        if let (Some(s), Some(ws)) = (std.as_mut(), ws) {
+            s[a * d..b * d].copy_from_slice(&ws[core]);
+        }
+        distinct = distinct.max(wi.distinct_covariances);
+        low_rank &= wi.low_rank;
+        windows += 1;
+    }
+    info.distinct_covariances = distinct;
+    info.low_rank = low_rank;
+    info.windows = windows;
+    info.window_margin = margin;
+    Ok((y, std))
+}
+
+/// One smoothing pass over all of `seq` (see [`smooth_with`]).
+fn smooth_pass(
     seq: &Seq<'_>,
     model: &Model,
     opts: &Options,
@@ -453,6 +554,71 @@ mod tests {
             }
         }
         x
+    }
+
+    #[test]
+    fn windowed_smoothing_equals_one_pass() {
+        // Gaps of 1-40 frames everywhere, some across window borders, plus a chain of
+        // overlapping gaps of two markers (frames 900-1000 and 950-1100) and a gap at the start.
+        let t = 3000;
+        let mut x = gapped(t, 7);
+        for i in 900..1000 {
+            x[i * 9..i * 9 + 3].fill(f64::NAN);
+        }
+        for i in 950..1100 {
+            x[i * 9 + 3..i * 9 + 6].fill(f64::NAN);
+        }
+        // memo_tol 0: no covariance is shared between frames, so the comparison is not blurred
+        // by the memo tolerance (1e-6 of the scale with the default).
+        let whole = Options {
+            want_std: true,
+            memo_tol: 0.0,
+            ..Options::default()
+        };
+        let a = crate::gapfill::fill(&x, t, 9, &whole).unwrap();
+        let windowed = Options {
+            window: Some(400),
+            ..whole.clone()
+        };
+        let b = crate::gapfill::fill(&x, t, 9, &windowed).unwrap();
+        // the same input gives the same output, bit for bit (no run-dependent summation order)
+        assert_eq!(a.x, crate::gapfill::fill(&x, t, 9, &whole).unwrap().x);
+        assert_eq!(a.info.windows, 1);
+        assert_eq!(b.info.windows, 8);
+        assert!(b.info.window_margin >= 150 + WINDOW_BURN_IN);
+        let scale = x
+            .iter()
+            .filter(|v| !v.is_nan())
+            .fold(0.0f64, |m, v| m.max(v.abs()));
+        let dy =
+            a.x.iter()
+                .zip(&b.x)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0.0, f64::max);
+        assert!(
+            dy <= 1e-9 * scale,
+            "largest difference {dy} (scale {scale})"
+        );
+        let (sa, sb) = (a.std.unwrap(), b.std.unwrap());
+        let ds = sa
+            .iter()
+            .zip(&sb)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0.0, f64::max);
+        let smax = sa.iter().cloned().fold(0.0, f64::max);
+        assert!(
+            ds <= 1e-9 * smax,
+            "largest std difference {ds} (largest std {smax})"
+        );
+        // a window longer than the sequence is one pass
+        let one = Options {
+            window: Some(t),
+            ..whole
+        };
+        assert_eq!(
+            crate::gapfill::fill(&x, t, 9, &one).unwrap().info.windows,
+            1
+        );
     }
 
     #[test]

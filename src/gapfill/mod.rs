@@ -114,6 +114,10 @@ pub enum Combine {
     Auto,
 }
 
+/// Window length (frames) that the Python `fill(window="auto")` and the `acm-gapfill` binary use
+/// for sequences longer than twice it ([`Options::window`]).
+pub const AUTO_WINDOW: usize = 10_000;
+
 /// Options of [`fill`]. `Options::default()` is the recommended configuration of
 /// [`Method::LowDim`]; [`Options::paper`] is the published one.
 #[derive(Debug, Clone, PartialEq)]
@@ -151,6 +155,11 @@ pub struct Options {
     pub memo_tol: f64,
     /// Seed of the internal calibration of `Combine::Auto`.
     pub seed: u64,
+    /// Smooth in windows of this many frames (bounded memory for long recordings): the model
+    /// (subspace, Q, r, spline threshold) is still learned once from the whole sequence; each
+    /// window is smoothed with it, with [`combine::window_margin`] frames of context on both
+    /// sides (the whole sequence when the model forgets too slowly for any margin). `None` (default): one pass over the whole sequence.
+    pub window: Option<usize>,
 }
 
 impl Default for Options {
@@ -171,6 +180,7 @@ impl Default for Options {
             want_std: false,
             memo_tol: 1e-6,
             seed: 0,
+            window: None,
         }
     }
 }
@@ -210,6 +220,9 @@ impl Options {
         if self.dim == Some(0) {
             return Err(AcmError::Invalid("dim must be >= 1".into()));
         }
+        if self.window == Some(0) {
+            return Err(AcmError::Invalid("window must be >= 1 frame".into()));
+        }
         if !(self.memo_tol >= 0.0 && self.memo_tol < 1e-3) {
             return Err(AcmError::Invalid(format!(
                 "memo_tol must be in [0, 1e-3), got {}",
@@ -241,6 +254,10 @@ pub struct Info {
     pub em_iters: usize,
     /// Whether the final smoothing pass used low-rank filter states ([`lowrank`]).
     pub low_rank: bool,
+    /// Windows of the final smoothing pass (1 without `Options::window`).
+    pub windows: usize,
+    /// Frames of context on each side of a window ([`combine::window_margin`]; 0 for one pass).
+    pub window_margin: usize,
 }
 
 /// The output of [`fill`].

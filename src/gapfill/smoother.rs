@@ -114,6 +114,17 @@ impl Patterns {
     }
 }
 
+/// The slowest per-frame decay of the smoother with every coordinate observed: the largest
+/// steady-state gain `μ_j = 2 / (2 + a_j + √(a_j (4 + a_j)))`, `a_j = g_j / r` over the
+/// eigenvalues `g_j` of the whitened `G_full` (see [`super::lowrank`]). A frame `n` frames away
+/// moves a smoothed mean by a factor of at most about `μⁿ` through observed stretches.
+pub fn slowest_decay(model: &Model) -> Result<f64> {
+    let w = White::new(model)?;
+    let g = nalgebra::SymmetricEigen::new(w.g_full.clone()).eigenvalues;
+    let a = g.iter().cloned().fold(f64::INFINITY, f64::min).max(0.0) * w.inv_r;
+    Ok(2.0 / (2.0 + a + (a * (4.0 + a)).sqrt()))
+}
+
 /// The model in whitened coordinates `x' = L⁻¹ x̃`, `Q = L Lᵀ` (so `Q' = I`).
 #[derive(Debug, Clone)]
 pub(super) struct White {
@@ -1017,12 +1028,14 @@ pub fn em_update(
     let k = model.k();
     let t_len = x.len() / d;
     let w = &sm.white;
-    // Mean terms, accumulated in parallel over frames.
-    let (dd, res2, nobs) = (1..t_len)
+    // Mean terms, accumulated in parallel over fixed blocks of frames and summed in block
+    // order (a work-stealing reduce would sum in a different order on every run).
+    const BLOCK: usize = 1024;
+    let blocks: Vec<(DMatrix<f64>, f64, usize)> = (0..(t_len - 1).div_ceil(BLOCK))
         .into_par_iter()
-        .fold(
-            || (DMatrix::<f64>::zeros(k, k), 0.0, 0usize),
-            |(mut acc, r2, n), t| {
+        .map(|blk| {
+            let (mut acc, mut r2, mut n) = (DMatrix::<f64>::zeros(k, k), 0.0, 0usize);
+            for t in 1 + blk * BLOCK..(1 + (blk + 1) * BLOCK).min(t_len) {
                 let a = &sm.m[(t - 1) * k..t * k];
                 let b = &sm.m[t * k..(t + 1) * k];
                 for j in 0..k {
@@ -1038,13 +1051,17 @@ pub fn em_update(
                 } else {
                     frame_residual(x, model, b, t)
                 };
-                (acc, r2 + r2b, n + nb)
-            },
-        )
-        .reduce(
-            || (DMatrix::<f64>::zeros(k, k), 0.0, 0usize),
-            |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2),
-        );
+                r2 += r2b;
+                n += nb;
+            }
+            (acc, r2, n)
+        })
+        .collect();
+    let (dd, res2, nobs) = blocks
+        .into_iter()
+        .fold((DMatrix::<f64>::zeros(k, k), 0.0, 0usize), |a, b| {
+            (a.0 + b.0, a.1 + b.1, a.2 + b.2)
+        });
     // Covariance terms (A.8 recursion, summed on the fly in parallel chunks).
     let sums = cov_sums(sm, pats)?;
     let (sc, sl) = (sums.cov, sums.lag);

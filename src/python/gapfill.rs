@@ -19,7 +19,7 @@ fn out<'py>(py: Python<'py>, data: Vec<f64>, shape: &[usize]) -> PyResult<Out<'p
 /// released.
 #[pyfunction]
 #[pyo3(signature = (x, method, gamma, criterion, dim, r, em_iters, paper_q, subspace_iters,
-    min_complete, combine, short_gap, keep_original, want_std, memo_tol, seed))]
+    min_complete, combine, short_gap, keep_original, want_std, memo_tol, seed, window=None))]
 #[allow(clippy::too_many_arguments)]
 fn gapfill_fill<'py>(
     py: Python<'py>,
@@ -39,6 +39,7 @@ fn gapfill_fill<'py>(
     want_std: bool,
     memo_tol: f64,
     seed: u64,
+    window: Option<usize>,
 ) -> PyResult<(Out<'py>, Option<Out<'py>>, Bound<'py, PyDict>)> {
     let shape = x.shape().to_vec();
     if shape.len() != 2 {
@@ -86,6 +87,7 @@ fn gapfill_fill<'py>(
         want_std,
         memo_tol,
         seed,
+        window,
     };
     let res = py
         .detach(|| gapfill::fill(data, t, d, &opts))
@@ -100,6 +102,8 @@ fn gapfill_fill<'py>(
     info.set_item("short_gap", res.info.short_gap)?;
     info.set_item("em_iters", res.info.em_iters)?;
     info.set_item("low_rank", res.info.low_rank)?;
+    info.set_item("windows", res.info.windows)?;
+    info.set_item("window_margin", res.info.window_margin)?;
     let filled = out(py, res.x, &[t, d])?;
     let std = match res.std {
         Some(s) => Some(out(py, s, &[t, d])?),
@@ -111,5 +115,6 @@ fn gapfill_fill<'py>(
 /// Adds the gap-filling functions to the native module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(gapfill_fill, m)?)?;
+    m.add("GAPFILL_AUTO_WINDOW", gapfill::AUTO_WINDOW)?;
     Ok(())
 }

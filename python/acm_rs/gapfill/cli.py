@@ -10,11 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .filling import METHODS
-
-#: Recordings longer than this are filled in windows unless --chunk says otherwise (the
-#: whole-recording fill of 200,000 frames x 41 markers peaks at 3.8 GB; issue 16).
-CHUNK_ABOVE = 100_000
+from .filling import AUTO_WINDOW, METHODS
 
 
 def _stage(msg: str, start: float) -> None:
@@ -61,15 +57,14 @@ def _cmd_gapfill(args: argparse.Namespace) -> int:
     )
     # the posterior SDs double the time and memory of the smoother: only when asked for
     try:
-        chunk = args.chunk if args.chunk else (CHUNK_ABOVE and len(m.xyz) > CHUNK_ABOVE and 20000)
-        if chunk and chunk < len(m.xyz):
-            from .chunked import fill_chunked
-
-            _stage(f"in windows of {chunk} frames (bounded memory; --chunk)", start)
-            res = fill_chunked(m.xyz, method=args.method, chunk=chunk,
-                               full_output=bool(args.std), empty="skip", **opts)  # fmt: skip
+        if args.window is None:
+            window = AUTO_WINDOW if n_t > 2 * AUTO_WINDOW else None
         else:
-            res = fill(m.xyz, method=args.method, full_output=bool(args.std), empty="skip", **opts)
+            window = args.window or None  # 0: one pass
+        if window and window < n_t and args.method.startswith("lowdim"):
+            _stage(f"smoothing in windows of {window:,} frames (bounded memory; --window)", start)
+        res = fill(m.xyz, method=args.method, full_output=bool(args.std), empty="skip",
+                   window=window, **opts)  # fmt: skip
     except AcmNumericalError as exc:
         raise ValueError(
             f"{src}: the {args.method} fill failed numerically ({exc}); try --method spline, "
@@ -161,9 +156,10 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
         "--rate", type=float, help="frame rate (Hz), needed for a TRC/C3D output of a CSV input"
     )
     g.add_argument(
-        "--chunk", type=int, default=0,
-        help="fill in windows of this many frames with 2x the longest gap of context on "
-        "each side (bounded memory); default: 20000 above 100000 frames, else the whole",
+        "--window", "--chunk", type=int, dest="window",
+        help=f"smooth in windows of this many frames (bounded memory; the model is learned "
+        f"from the whole recording and the result equals one pass); 0: one pass; default: "
+        f"windows of {AUTO_WINDOW} frames above {2 * AUTO_WINDOW} frames",
     )  # fmt: skip
     g.add_argument("--overwrite", action="store_true", help="replace an existing output")
     g.set_defaults(func=_cmd_gapfill)

@@ -35,7 +35,12 @@ _DEFAULTS: dict[str, Any] = {
     "keep_original": True,
     "memo_tol": 1e-6,
     "seed": 0,
+    "window": "auto",
 }
+
+#: ``window="auto"``: sequences longer than twice this are smoothed in windows of this many
+#: frames (the same fill as one pass, in bounded memory; ``acm_rs::gapfill::AUTO_WINDOW``).
+AUTO_WINDOW: int = _native.GAPFILL_AUTO_WINDOW
 _PAPER: dict[str, Any] = {
     **_DEFAULTS,
     "gamma": 0.9975,
@@ -137,7 +142,12 @@ def fill(
         up to ``short_gap`` frames), ``short_gap`` (frames; ``None`` = calibrated on the data
         by hiding probe gaps of 1-270 frames; the posterior ``std`` stays the smoother's
         also where the spline fills), ``keep_original``
-        (default True), ``memo_tol`` (1e-6), ``seed`` (calibration seed).
+        (default True), ``memo_tol`` (1e-6), ``seed`` (calibration seed), ``window``
+        (frames, ``None`` or ``"auto"``: the smoothing pass of ``lowdim``/``lowdim-paper`` runs
+        window by window, each with the longest gap plus a burn-in of context on both sides,
+        while the model is still learned from the whole sequence, so the fill equals one pass
+        to ~1e-9 of the data's scale in memory of one window; ``None``: one pass; default
+        ``"auto"``: windows of :data:`AUTO_WINDOW` frames above twice that length).
 
     Returns
     -------
@@ -196,6 +206,15 @@ def fill(
     # when every marker is kept.
     sub = arr if everything else arr[:, keep]
     sub = np.ascontiguousarray(sub.reshape(n_frames, -1))
+    window = opts["window"]
+    if isinstance(window, str):
+        if window != "auto":
+            raise ValueError(f"window must be a number of frames, None or 'auto', got {window!r}")
+        window = AUTO_WINDOW if n_frames > 2 * AUTO_WINDOW else None
+    elif window is not None:
+        if isinstance(window, bool) or int(window) != window or window < 1:
+            raise ValueError(f"window must be a positive number of frames, got {window!r}")
+        window = int(window)
     if opts["min_complete"] == 0:
         opts["min_complete"] = max(int(keep.sum()), 10)
     filled_sub, std_sub, info = _native.gapfill_fill(
@@ -215,6 +234,7 @@ def fill(
         bool(full_output),
         float(opts["memo_tol"]),
         int(opts["seed"]),
+        window,
     )
     if everything:
         out = filled_sub.reshape(arr.shape)
