@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 
 from .._io import atomic_write, new_file_mode
+from . import c3d_stream
+from .c3d_stream import set_c3d_frame_count, set_param
 
 __all__ = [
     "C3D_RESIDUALS",
@@ -302,29 +304,28 @@ def _c3d_layout(c, p: Path) -> tuple[int, int, int, float]:
     return (int(start[0]) - 1) * 512, 4 * n_points + n_analog, 4 if scale < 0 else 2, scale
 
 
-def _c3d_points_raw(p: Path, c, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """Point data of a C3D read directly, for files longer than ezc3d's 65535 frames:
-    ``(xyz (n_frames, n_points, 3), residual (n_frames, n_points))``; Intel float format only."""
+def _c3d_points_raw(p: Path, c, n_frames: int) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Point data of a C3D read in blocks from the file (long or large files, see
+    :mod:`acm_rs.gapfill.c3d_stream`): ``(xyz (n_frames, n_points, 3), residual (n_frames,
+    n_points), where the frames are)``; Intel float format only."""
+    from .c3d_stream import header_layout, read_points
+
     offset, words, size, scale = _c3d_layout(c, p)
-    with open(p, "rb") as fh:
-        fh.seek(512)
-        head = fh.read(4)
-    if size != 4 or len(head) < 4 or head[3] != 84:
+    h = header_layout(p)
+    if size != 4 or h is None or h["processor"] != 84:
         raise ValueError(
             f"{p}: C3D with more than 65535 frames in integer or non-Intel format is not "
             "supported; convert it to the Intel floating-point format"
         )
     n_points = int(_param(c, "POINT", "USED")[0])
-    raw = np.memmap(p, dtype="<f4", mode="r", offset=offset, shape=(n_frames, words))
-    pts = np.asarray(raw[:, : 4 * n_points], dtype=np.float64).reshape(n_frames, n_points, 4)
-    res_word = pts[:, :, 3]
-    residual = np.where(res_word < 0, -1.0, (np.abs(res_word).astype(np.int64) & 0xFF) * 1.0)
-    residual *= np.where(res_word < 0, 1.0, abs(scale))
-    return pts[:, :, :3].copy(), residual
+    xyz, residual = read_points(p, offset, words, n_points, n_frames, scale)
+    where = {"path": str(p), "offset": offset, "words": words, "n_points": n_points,
+             "n_frames": n_frames}  # fmt: skip
+    return xyz, residual, where
 
 
 def read_c3d(path: str | os.PathLike[str]) -> Markers:
-    """Read a C3D file with ezc3d.
+    """Read a C3D file with ezc3d (large files: parameters with ezc3d, frames in blocks).
 
     Missing markers (NaN, or a negative residual) become NaN. The number of frames is the
     declared one (POINT:LONG_FRAMES, TRIAL:ACTUAL_END_FIELD or POINT:FRAMES, so files over
@@ -352,8 +353,9 @@ def read_c3d(path: str | os.PathLike[str]) -> Markers:
     if not p.is_file():
         raise ValueError(f"C3D file not found: {p}")
     _c3d_check_sections(p)
+    stream = c3d_stream.wants_streaming(p)
     try:
-        c = ezc3d.c3d(str(p))
+        c = c3d_stream.read_parameters(p) if stream else ezc3d.c3d(str(p))
         pts = np.asarray(c["data"]["points"], dtype=np.float64)
         declared = _c3d_declared_frames(c, p)
         offset, words, size, _ = _c3d_layout(c, p)
@@ -369,9 +371,10 @@ def read_c3d(path: str | os.PathLike[str]) -> Markers:
         )
     meta = c["data"].get("meta_points", {})
     res = meta.get("residuals") if isinstance(meta, dict) else None
-    if declared > pts.shape[2]:
+    where = None
+    if stream or declared > pts.shape[2]:
         try:
-            xyz, residual = _c3d_points_raw(p, c, declared)
+            xyz, residual, where = _c3d_points_raw(p, c, declared)
         except ValueError:
             raise
         except Exception as exc:  # a damaged layout (negative offset, odd sizes)
@@ -397,29 +400,8 @@ def read_c3d(path: str | os.PathLike[str]) -> Markers:
     filled = None
     if _param(c, "ACM_RS", "FILLED_RESIDUAL") is not None and residual is not None:
         filled = (residual == 0) & ~np.isnan(xyz[:, :, 0])
-    src = {"c3d": c, "residual": residual}
+    src = {"c3d": c, "residual": residual, "frames_at": where}
     return Markers(xyz, labels, rate, str(units[0]) if len(units) else "mm", src, filled)
-
-
-def _set_param(c, group: str, name: str, value) -> None:
-    params = c["parameters"]
-    if group in params and name in params[group]:
-        params[group][name]["value"] = value
-    else:
-        c.add_parameter(group, name, value)
-
-
-def set_c3d_frame_count(c, n_frames: int) -> None:
-    """Record a length over 65535 frames in an ezc3d object the ways C3D readers look for it.
-
-    POINT:FRAMES is a 16-bit count (ezc3d writes 65535); longer recordings also get
-    POINT:LONG_FRAMES (the count, float) and TRIAL:ACTUAL_START_FIELD / ACTUAL_END_FIELD (first
-    and last frame as low and high 16-bit words), which :func:`read_c3d` reads back.
-    """
-    if n_frames > 65535:
-        _set_param(c, "POINT", "LONG_FRAMES", [float(n_frames)])
-        _set_param(c, "TRIAL", "ACTUAL_START_FIELD", [1, 0])
-        _set_param(c, "TRIAL", "ACTUAL_END_FIELD", [n_frames & 0xFFFF, n_frames >> 16])
 
 
 def _write_c3d(path: Path, m: Markers, xyz: np.ndarray, filled: np.ndarray | None) -> None:
@@ -432,22 +414,26 @@ def _write_c3d(path: Path, m: Markers, xyz: np.ndarray, filled: np.ndarray | Non
         c["parameters"]["POINT"]["RATE"]["value"] = [float(m.rate)]
         c["parameters"]["POINT"]["LABELS"]["value"] = list(m.labels)
         c["parameters"]["POINT"]["UNITS"]["value"] = [m.units]
-    pts = np.ones((4, n_markers, n_frames))
-    pts[:3] = xyz.transpose(2, 1, 0)
-    c["data"]["points"] = pts
     # Residuals (C3D_RESIDUALS): -1 missing, 0 filled, the source's (or 1) where measured.
     residual = np.full((n_frames, n_markers), C3D_RESIDUALS["measured_unknown"])
     src_res = m.source.get("residual")
     if src_res is not None and src_res.shape == residual.shape:
-        residual = np.where(src_res > 0, src_res, residual)
+        np.copyto(residual, src_res, where=src_res > 0)
     if filled is not None:
         residual[filled] = C3D_RESIDUALS["filled"]
     residual[np.isnan(xyz).any(axis=2)] = C3D_RESIDUALS["missing"]
+    set_param(c, "ACM_RS", "FILLED_RESIDUAL", [float(C3D_RESIDUALS["filled"])])
+    if n_frames > 65535 or 16 * n_frames * n_markers > c3d_stream.STREAM_BYTES:
+        # frames in blocks after ezc3d's header and parameters (bounded memory)
+        c3d_stream.write_streamed(path, c, xyz, residual, m.source.get("frames_at"))
+        return
+    pts = np.ones((4, n_markers, n_frames))
+    pts[:3] = xyz.transpose(2, 1, 0)
+    c["data"]["points"] = pts
     c["data"]["meta_points"] = {
         "residuals": residual.T[None].copy(),
         "camera_masks": np.zeros((7, n_markers, n_frames), dtype=bool),
     }
-    _set_param(c, "ACM_RS", "FILLED_RESIDUAL", [float(C3D_RESIDUALS["filled"])])
     set_c3d_frame_count(c, n_frames)
     # ezc3d writes by path and needs a .c3d suffix: write a temporary .c3d next to the target,
     # then rename it over the target (the same guarantee as atomic_write).
