@@ -52,7 +52,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=200_000)
     ap.add_argument("--gaps", type=int, default=600)
     ap.add_argument("--max-gap", type=int, default=300)
-    ap.add_argument("--window", type=int, help="--window of the command (0: one pass; default: its default)")
+    ap.add_argument("--window", type=int, help="--window of the command (0: one pass)")
     ap.add_argument("--keep", help="folder for the input and output files (default: temporary)")
     a = ap.parse_args()
     full, Y, labels, rate = make(Path(a.c3d), a.frames, a.gaps, a.max_gap)
@@ -67,11 +67,10 @@ def main() -> None:
         src, out = d / "long_in.c3d", d / "long_out.c3d"
         t0 = time.perf_counter()
         write(src, Y, labels, rate)
-        print(
-            f"wrote {src} ({src.stat().st_size / 2**20:.0f} MiB) in {time.perf_counter() - t0:.1f} s"
-        )
-        cmd = [sys.executable, "-m", "acm_rs.cli", "gapfill", str(src), "-o", str(out),
-               "--overwrite"] + ([] if a.window is None else ["--window", str(a.window)])  # fmt: skip
+        mib = src.stat().st_size / 2**20
+        print(f"wrote {src} ({mib:.0f} MiB) in {time.perf_counter() - t0:.1f} s")
+        cmd = [sys.executable, "-m", "acm_rs.cli", "gapfill", str(src), "-o", str(out)]
+        cmd += ["--overwrite"] + ([] if a.window is None else ["--window", str(a.window)])
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd)
         _, status, usage = os.wait4(proc.pid, 0)
