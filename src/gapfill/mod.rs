@@ -170,7 +170,9 @@ impl Default for Options {
             criterion: Criterion::Energy,
             dim: None,
             r: None,
-            em_iters: 5,
+            // 3 iterations: on CMU 135_02 and 85_02 (5 gap patterns each) the pooled mean error
+            // moved by -0.16 % and +0.18 % from 5 iterations, and the fill got 17 % faster.
+            em_iters: 3,
             paper_q: false,
             subspace_iters: 2,
             min_complete: 0,

@@ -26,7 +26,7 @@ _DEFAULTS: dict[str, Any] = {
     "criterion": "energy",
     "dim": None,
     "r": None,
-    "em_iters": 5,
+    "em_iters": 3,
     "paper_q": False,
     "subspace_iters": 2,
     "min_complete": 0,
@@ -133,7 +133,7 @@ def fill(
         ``criterion`` (``"energy"`` on squared singular values, default, or
         ``"singular-values"`` as published), ``dim`` (fixed subspace dimension), ``r``
         (measurement noise variance in units², R = r·I; default learned by EM, paper 1e-3),
-        ``em_iters`` (default 5, on at most 2000 frames), ``paper_q`` (published Q),
+        ``em_iters`` (default 3, on at most 2000 frames), ``paper_q`` (published Q),
         ``subspace_iters`` (impute → SVD →
         smooth rounds when complete frames are scarce, default 2), ``min_complete`` (complete
         frames needed to skip those rounds; 0 = max(n_markers, 10)), ``combine``
