@@ -55,6 +55,36 @@ def test_online_filter_equals_the_offline_forward_pass(data):
     np.testing.assert_allclose(joints, off_joints, rtol=0, atol=1e-9)
 
 
+def test_full_lag_window_is_the_offline_smoother_with_fixed_parameters(data):
+    """lag >= T - 1: after the last frame, lagged_window() is the RTS smoother (Alg. 8) of
+    the recording with Θ fixed, from the same start; its first row is lagged()."""
+    sk, rig, det, lik, _, res = data
+    n_t = det.shape[1]
+    online = acm_rs.OnlineTracker.from_result(res, vz_shrinkage=0.0, lag=n_t)
+    for t in range(n_t):
+        online.update(det[:, t], lik[:, t])
+    joints, sd, k = online.lagged_window()
+    assert k == n_t - 1 and joints.shape == (n_t, sk.n_joints, 3) == sd.shape
+    j0, s0, _ = online.lagged()
+    np.testing.assert_array_equal(joints[0], j0)
+    np.testing.assert_array_equal(sd[0], s0)
+    norm = online.norm
+    m = _masked(det, lik)
+    _, t0, r0 = _first_pose(rig, sk, m, norm)
+    mu0 = StateMap(sk, norm, True).start_state(t0, r0)
+    lim = sk.joint_limits
+    x = norm.normalize_pixels(m).transpose(1, 0, 2, 3)
+    nt = _native.NativeTracker(
+        sk._native, rig.get_params(), np.ascontiguousarray(lim[..., 0]),
+        np.ascontiguousarray(lim[..., 1]), norm._tuple(), True, np.ascontiguousarray(x),
+    )  # fmt: skip
+    p = res.info["params"]
+    nt.e_step(mu0, p["V0"], p["Vz"], p["Vx_diag"], gate_threshold(DEFAULT_GATE), True, False)
+    _, off_joints, _, off_sd, _ = nt.posterior()
+    np.testing.assert_allclose(joints, off_joints, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(sd, off_sd, rtol=1e-6, atol=1e-10)
+
+
 def test_fixed_lag_and_prediction(data):
     sk, rig, det, lik, truth, res = data
     n_t = det.shape[1]

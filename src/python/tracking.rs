@@ -521,6 +521,24 @@ impl PyOnlineTracker {
         Ok((j, s, k))
     }
 
+    /// Joints and SD of every frame `t − k ..= t` smoothed with the frames up to `t` (lists in
+    /// time order), and `k`.
+    #[allow(clippy::type_complexity)]
+    fn lagged_window_poses<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(Vec<Out<'py>>, Vec<Out<'py>>, usize)> {
+        let inner = &self.inner;
+        let (win, k) = py.detach(|| inner.lagged_window()).map_err(to_py)?;
+        let (mut js, mut ss) = (Vec::with_capacity(win.len()), Vec::with_capacity(win.len()));
+        for (m, c) in &win {
+            let (j, s) = self.pose(py, m, c)?;
+            js.push(j);
+            ss.push(s);
+        }
+        Ok((js, ss, k))
+    }
+
     /// Joints and SD predicted `steps` frames after the last filtered frame.
     fn predicted_pose<'py>(&self, py: Python<'py>, steps: usize) -> PyResult<(Out<'py>, Out<'py>)> {
         let (m, c) = self.inner.predict(steps);

@@ -168,6 +168,27 @@ impl<E: Emission> OnlineTracker<E> {
     /// # Errors
     /// Invalid before the first frame; numerical errors of the smoother.
     pub fn lagged(&self) -> Result<(Vec<f64>, Vec<f64>, usize)> {
+        let (mut all, k) = self.backward(false)?;
+        let (m, v) = all.pop().expect("one frame at least");
+        Ok((m, v, k))
+    }
+
+    /// The fixed-lag smoothed moments of every frame of the window, `t − k ..= t` in time
+    /// order, given the frames up to `t` (`k` as in [`Self::lagged`]): with `lag ≥ T − 1`, after
+    /// the last frame, the RTS smoother (Alg. 8) of the whole recording with `Θ` fixed.
+    ///
+    /// # Errors
+    /// As [`Self::lagged`].
+    pub fn lagged_window(&self) -> Result<(Vec<(Vec<f64>, Vec<f64>)>, usize)> {
+        let (mut all, k) = self.backward(true)?;
+        all.reverse();
+        Ok((all, k))
+    }
+
+    /// Alg. 8 backwards over the window: the moments of frame `t − k` (last), and with
+    /// `keep_all` those of every frame from `t` down to `t − k`.
+    #[allow(clippy::type_complexity)]
+    fn backward(&self, keep_all: bool) -> Result<(Vec<(Vec<f64>, Vec<f64>)>, usize)> {
         if self.frames == 0 {
             return Err(AcmError::Invalid("no frame processed yet".into()));
         }
@@ -176,6 +197,10 @@ impl<E: Emission> OnlineTracker<E> {
         let vz = DMatrix::from_column_slice(ns, ns, &self.params.vz);
         let mut ms = DVector::from_column_slice(&self.means[self.head]);
         let mut vs = DMatrix::from_column_slice(ns, ns, &self.covs[self.head]);
+        let mut out = Vec::with_capacity(if keep_all { k + 1 } else { 1 });
+        if keep_all {
+            out.push((ms.as_slice().to_vec(), vs.as_slice().to_vec()));
+        }
         for back in 1..=k {
             let slot = (self.head + self.lag + 1 - back) % (self.lag + 1);
             let mf = DVector::from_column_slice(&self.means[slot]);
@@ -183,8 +208,14 @@ impl<E: Emission> OnlineTracker<E> {
             let (m, v, _) = rts_step(&mf, &vf, &ms, &vs, &vz, n, self.frames - 1 - back)?;
             ms = m;
             vs = v;
+            if keep_all {
+                out.push((ms.as_slice().to_vec(), vs.as_slice().to_vec()));
+            }
         }
-        Ok((ms.as_slice().to_vec(), vs.as_slice().to_vec(), k))
+        if !keep_all {
+            out.push((ms.as_slice().to_vec(), vs.as_slice().to_vec()));
+        }
+        Ok((out, k))
     }
 
     /// The prediction `steps` frames ahead of the last filtered frame (no measurement):

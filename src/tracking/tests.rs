@@ -503,6 +503,11 @@ fn online_tracker_equals_the_offline_filter_and_fixed_lag_smoother() {
         if t % 9 == 3 {
             let (lm, lv, k) = on.lagged().unwrap();
             assert_eq!(k, lag.min(t));
+            // the whole window: its first frame is lagged(), the last the filtered frame
+            let (win, kw) = on.lagged_window().unwrap();
+            assert_eq!((kw, win.len()), (k, k + 1));
+            assert_eq!((&win[0].0, &win[0].1), (&lm, &lv));
+            assert_eq!(&win[k].0[..], on.filtered().0);
             let mut part = Tracker::new(em.clone(), x[..(t + 1) * n_x].to_vec()).unwrap();
             part.e_step(&p, None).unwrap();
             let f = t - k + 1;
@@ -512,6 +517,13 @@ fn online_tracker_equals_the_offline_filter_and_fixed_lag_smoother() {
                     "lagged t={t}"
                 );
                 assert!((lv[i * n + i] - part.covs()[f * n * n + i * n + i]).abs() < 1e-10);
+                for (j, (wm, _)) in win.iter().enumerate() {
+                    let g = f + j;
+                    assert!(
+                        (wm[i] - part.means()[g * n + i]).abs() < 1e-10,
+                        "window t={t}"
+                    );
+                }
             }
         }
     }

@@ -180,6 +180,16 @@ class OnlineTracker:
             raise ValueError("no frame processed yet")
         return self._native.lagged_pose()
 
+    def lagged_window(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """``(joints, sd, k)``: the poses of the last ``k + 1`` frames (``k`` as in
+        :meth:`lagged`), each smoothed with every frame up to the last; ``joints`` and ``sd``
+        of shape (k + 1, n_joints, 3) in time order. With ``lag >= n_frames - 1``, after the
+        last frame, this is the offline smoother (Alg. 8) of the recording with Θ fixed."""
+        if self._native is None:
+            raise ValueError("no frame processed yet")
+        js, ss, k = self._native.lagged_window_poses()
+        return np.stack(js), np.stack(ss), k
+
     def predict(self, frames_ahead: int) -> tuple[np.ndarray, np.ndarray]:
         """``(joints, sd)`` predicted ``frames_ahead`` frames after the last processed frame
         (e.g. the loop's latency in frames)."""
