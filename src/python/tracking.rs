@@ -514,8 +514,8 @@ impl PyOnlineTracker {
     }
 
     /// Joints and SD of frame `t − k` smoothed with the frames up to `t`, and `k`.
-    fn lagged_pose<'py>(&self, py: Python<'py>) -> PyResult<(Out<'py>, Out<'py>, usize)> {
-        let inner = &self.inner;
+    fn lagged_pose<'py>(&mut self, py: Python<'py>) -> PyResult<(Out<'py>, Out<'py>, usize)> {
+        let inner = &mut self.inner;
         let (m, c, k) = py.detach(|| inner.lagged()).map_err(to_py)?;
         let (j, s) = self.pose(py, &m, &c)?;
         Ok((j, s, k))
@@ -525,10 +525,10 @@ impl PyOnlineTracker {
     /// time order), and `k`.
     #[allow(clippy::type_complexity)]
     fn lagged_window_poses<'py>(
-        &self,
+        &mut self,
         py: Python<'py>,
     ) -> PyResult<(Vec<Out<'py>>, Vec<Out<'py>>, usize)> {
-        let inner = &self.inner;
+        let inner = &mut self.inner;
         let (win, k) = py.detach(|| inner.lagged_window()).map_err(to_py)?;
         let (mut js, mut ss) = (Vec::with_capacity(win.len()), Vec::with_capacity(win.len()));
         for (m, c) in &win {

@@ -4,15 +4,22 @@
 //! given latency (the transition of [`super::filter::predict`], no measurement).
 //!
 //! Memory is fixed at construction: the filtered moments of the last `lag + 1` frames in a
-//! ring of preallocated buffers and the filter's workspace.
+//! ring of preallocated buffers and the filter's workspace. The smoother's gain of a frame
+//! (line 4 of Alg. 8) depends on its filtered covariance only, so it is computed once, the
+//! first time the fixed-lag smoother needs it, and kept in the ring with the frame: each
+//! `lagged` call factorises one new `F Ṽ Fᵀ + V_z`, not `lag` of them, and without the
+//! covariances (`want_cov = false`) the rest is `lag` matrix-vector products.
 
 use super::dense::symmetrize;
 use super::filter::{self, predict, FilterStats, Workspace};
 use super::model::Emission;
-use super::smoother::rts_step;
+use super::smoother::{rts_apply, rts_gain};
 use super::Params;
 use crate::error::{ensure_len, AcmError, Result};
 use nalgebra::{DMatrix, DVector};
+
+/// A state mean and covariance (column-major), as returned by [`OnlineTracker::lagged_window`].
+pub type Moments = (Vec<f64>, Vec<f64>);
 
 /// Frame-by-frame tracker with fixed parameters.
 #[derive(Debug)]
@@ -26,6 +33,10 @@ pub struct OnlineTracker<E: Emission> {
     /// Filtered means / covariances of the last `lag + 1` frames (ring; `head` = newest).
     means: Vec<Vec<f64>>,
     covs: Vec<Vec<f64>>,
+    /// Per slot: the smoother gain `G_tᵀ` and `P = F Ṽ_t Fᵀ + V_z` of the frame in the slot,
+    /// once computed, with that frame's index (`usize::MAX`: none yet).
+    gains: Vec<Option<(DMatrix<f64>, DMatrix<f64>)>>,
+    gain_frame: Vec<usize>,
     head: usize,
     /// Frames processed so far.
     frames: usize,
@@ -66,6 +77,8 @@ impl<E: Emission> OnlineTracker<E> {
         let mut t = Self {
             means: vec![vec![0.0; ns]; lag + 1],
             covs: vec![vec![0.0; ns * ns]; lag + 1],
+            gains: vec![None; lag + 1],
+            gain_frame: vec![usize::MAX; lag + 1],
             head: 0,
             frames: 0,
             ws: Workspace::new(n, n_x),
@@ -89,6 +102,7 @@ impl<E: Emission> OnlineTracker<E> {
         self.frames = 0;
         self.means[0].copy_from_slice(&self.params.mu0);
         self.covs[0].copy_from_slice(&self.params.v0);
+        self.gain_frame.fill(usize::MAX);
         self.stats = FilterStats::default();
     }
 
@@ -153,6 +167,7 @@ impl<E: Emission> OnlineTracker<E> {
         )?;
         self.stats = stats;
         self.head = next;
+        self.gain_frame[next] = usize::MAX; // a new frame in this slot
         self.frames += 1;
         Ok(())
     }
@@ -167,10 +182,20 @@ impl<E: Emission> OnlineTracker<E> {
     ///
     /// # Errors
     /// Invalid before the first frame; numerical errors of the smoother.
-    pub fn lagged(&self) -> Result<(Vec<f64>, Vec<f64>, usize)> {
-        let (mut all, k) = self.backward(false)?;
+    pub fn lagged(&mut self) -> Result<(Vec<f64>, Vec<f64>, usize)> {
+        let (mut all, k) = self.backward(false, true)?;
         let (m, v) = all.pop().expect("one frame at least");
-        Ok((m, v, k))
+        Ok((m, v.expect("asked for"), k))
+    }
+
+    /// The smoothed mean of frame `t − k` as [`Self::lagged`], without its covariance: `lag`
+    /// matrix-vector products once the gains are cached (one new gain per frame).
+    ///
+    /// # Errors
+    /// As [`Self::lagged`].
+    pub fn lagged_mean(&mut self) -> Result<(Vec<f64>, usize)> {
+        let (mut all, k) = self.backward(false, false)?;
+        Ok((all.pop().expect("one frame at least").0, k))
     }
 
     /// The fixed-lag smoothed moments of every frame of the window, `t − k ..= t` in time
@@ -179,41 +204,71 @@ impl<E: Emission> OnlineTracker<E> {
     ///
     /// # Errors
     /// As [`Self::lagged`].
-    pub fn lagged_window(&self) -> Result<(Vec<(Vec<f64>, Vec<f64>)>, usize)> {
-        let (mut all, k) = self.backward(true)?;
-        all.reverse();
+    pub fn lagged_window(&mut self) -> Result<(Vec<Moments>, usize)> {
+        let (all, k) = self.backward(true, true)?;
+        let all = all
+            .into_iter()
+            .rev()
+            .map(|(m, v)| (m, v.expect("asked for")))
+            .collect();
         Ok((all, k))
     }
 
     /// Alg. 8 backwards over the window: the moments of frame `t − k` (last), and with
-    /// `keep_all` those of every frame from `t` down to `t − k`.
+    /// `keep_all` those of every frame from `t` down to `t − k`; covariances if `want_cov`.
     #[allow(clippy::type_complexity)]
-    fn backward(&self, keep_all: bool) -> Result<(Vec<(Vec<f64>, Vec<f64>)>, usize)> {
+    fn backward(
+        &mut self,
+        keep_all: bool,
+        want_cov: bool,
+    ) -> Result<(Vec<(Vec<f64>, Option<Vec<f64>>)>, usize)> {
         if self.frames == 0 {
             return Err(AcmError::Invalid("no frame processed yet".into()));
         }
         let k = self.lag.min(self.frames - 1);
         let (ns, n) = (self.ns, self.em.n_state());
         let vz = DMatrix::from_column_slice(ns, ns, &self.params.vz);
+        // the gains of the frames t − k .. t − 1 not computed yet (normally only t − 1)
+        for back in 1..=k {
+            let slot = (self.head + self.lag + 1 - back) % (self.lag + 1);
+            let frame = self.frames - 1 - back;
+            if self.gain_frame[slot] != frame {
+                let vf = DMatrix::from_column_slice(ns, ns, &self.covs[slot]);
+                self.gains[slot] = Some(rts_gain(&vf, &vz, n, frame)?);
+                self.gain_frame[slot] = frame;
+            }
+        }
         let mut ms = DVector::from_column_slice(&self.means[self.head]);
-        let mut vs = DMatrix::from_column_slice(ns, ns, &self.covs[self.head]);
+        let mut vs = want_cov.then(|| DMatrix::from_column_slice(ns, ns, &self.covs[self.head]));
+        let row = |m: &DVector<f64>, v: &Option<DMatrix<f64>>| {
+            (
+                m.as_slice().to_vec(),
+                v.as_ref().map(|v| v.as_slice().to_vec()),
+            )
+        };
         let mut out = Vec::with_capacity(if keep_all { k + 1 } else { 1 });
         if keep_all {
-            out.push((ms.as_slice().to_vec(), vs.as_slice().to_vec()));
+            out.push(row(&ms, &vs));
         }
         for back in 1..=k {
             let slot = (self.head + self.lag + 1 - back) % (self.lag + 1);
             let mf = DVector::from_column_slice(&self.means[slot]);
-            let vf = DMatrix::from_column_slice(ns, ns, &self.covs[slot]);
-            let (m, v, _) = rts_step(&mf, &vf, &ms, &vs, &vz, n, self.frames - 1 - back)?;
+            let (gt, p) = self.gains[slot].as_ref().expect("computed above");
+            let (m, v) = if let Some(vn) = vs.as_ref() {
+                let vf = DMatrix::from_column_slice(ns, ns, &self.covs[slot]);
+                rts_apply(&mf, &vf, gt, p, &ms, Some(vn), n)
+            } else {
+                let empty = DMatrix::zeros(0, 0);
+                rts_apply(&mf, &empty, gt, p, &ms, None, n)
+            };
             ms = m;
             vs = v;
             if keep_all {
-                out.push((ms.as_slice().to_vec(), vs.as_slice().to_vec()));
+                out.push(row(&ms, &vs));
             }
         }
         if !keep_all {
-            out.push((ms.as_slice().to_vec(), vs.as_slice().to_vec()));
+            out.push(row(&ms, &vs));
         }
         Ok((out, k))
     }

@@ -88,7 +88,23 @@ pub(crate) fn rts_step(
     n: usize,
     t: usize,
 ) -> Result<(DVector<f64>, DMatrix<f64>, DMatrix<f64>)> {
-    let ns = mf.len();
+    let (gt, p) = rts_gain(vf, vz, n, t)?;
+    let (ms, vs) = rts_apply(mf, vf, &gt, &p, ms_next, Some(vs_next), n);
+    Ok((ms, vs.expect("asked for"), gt))
+}
+
+/// The gain of one backward step of Alg. 8, which depends on the filtered covariance only:
+/// `(G_tᵀ, P)` with `P = F Ṽ_t Fᵀ + V_z` and `G_tᵀ = P⁻¹ F Ṽ_t` (line 4).
+///
+/// # Errors
+/// Numerical error if `P` is not positive definite.
+pub(crate) fn rts_gain(
+    vf: &DMatrix<f64>,
+    vz: &DMatrix<f64>,
+    n: usize,
+    t: usize,
+) -> Result<(DMatrix<f64>, DMatrix<f64>)> {
+    let ns = vf.nrows();
     let fv = f_left(vf, n); // F Ṽ_t
     let p = f_right(&fv, n) + vz;
     let lp = cholesky(p.as_slice(), ns, &|| {
@@ -96,10 +112,27 @@ pub(crate) fn rts_step(
     })?;
     let mut gt = fv; // Gᵀ = P⁻¹ F Ṽ_t (P and Ṽ_t symmetric)
     chol_solve_mat(&lp, &mut gt);
-    let g = gt.transpose();
+    Ok((gt, p))
+}
+
+/// Lines 5-8 of Alg. 8 with the gain of [`rts_gain`]: `μ̂_t = μ̃_t + G (μ̂_{t+1} − F μ̃_t)` and,
+/// if `vs_next` is given, `V̂_t = Ṽ_t + G (V̂_{t+1} − P) Gᵀ`.
+pub(crate) fn rts_apply(
+    mf: &DVector<f64>,
+    vf: &DMatrix<f64>,
+    gt: &DMatrix<f64>,
+    p: &DMatrix<f64>,
+    ms_next: &DVector<f64>,
+    vs_next: Option<&DMatrix<f64>>,
+    n: usize,
+) -> (DVector<f64>, Option<DMatrix<f64>>) {
+    let ns = mf.len();
     let fm = f_left(&DMatrix::from_column_slice(ns, 1, mf.as_slice()), n);
-    let ms = mf + &g * (ms_next - fm.column(0));
-    let mut vs = vf + &g * (vs_next - &p) * &gt;
-    symmetrize(&mut vs);
-    Ok((ms, vs, gt))
+    let ms = mf + gt.tr_mul(&(ms_next - fm.column(0)));
+    let vs = vs_next.map(|vn| {
+        let mut vs = vf + gt.tr_mul(&(vn - p)) * gt;
+        symmetrize(&mut vs);
+        vs
+    });
+    (ms, vs)
 }

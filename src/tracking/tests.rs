@@ -503,6 +503,9 @@ fn online_tracker_equals_the_offline_filter_and_fixed_lag_smoother() {
         if t % 9 == 3 {
             let (lm, lv, k) = on.lagged().unwrap();
             assert_eq!(k, lag.min(t));
+            // the cached gains give the same moments again, and the mean alone
+            assert_eq!(on.lagged().unwrap(), (lm.clone(), lv.clone(), k));
+            assert_eq!(on.lagged_mean().unwrap(), (lm.clone(), k));
             // the whole window: its first frame is lagged(), the last the filtered frame
             let (win, kw) = on.lagged_window().unwrap();
             assert_eq!((kw, win.len()), (k, k + 1));
