@@ -26,8 +26,9 @@ def _make(path: Path, n_frames=60, n_points=3, analog_ratio=4, seed=0) -> None:
     pts = np.ones((4, n_points, n_frames))
     pts[:3] = rng.normal(size=(3, n_points, n_frames)) * 300
     res = rng.choice([0.0, 0.5, 1.2, 3.0, 17.3], size=(1, n_points, n_frames))
-    res[0, 1, 10:20] = -1.0
-    pts[:3, 1, 10:20] = np.nan
+    gap = min(1, n_points - 1)  # the marker with a gap
+    res[0, gap, 10:20] = -1.0
+    pts[:3, gap, 10:20] = np.nan
     masks = rng.random((7, n_points, n_frames)) < 0.3
     c["data"]["points"] = pts
     c["data"]["meta_points"] = {"residuals": res, "camera_masks": masks}
@@ -86,6 +87,23 @@ def test_block_writer_writes_the_bytes_ezc3d_writes(tmp_path, monkeypatch):
         a = (tmp_path / f"e{i}.c3d").read_bytes()
         b = (tmp_path / f"s{i}.c3d").read_bytes()
         assert len(a) == len(b) and a == b, src
+
+
+def test_file_read_in_blocks_for_its_analogs_is_written_in_blocks(tmp_path, monkeypatch):
+    """Few points, many analog words: the data section is over the threshold, the points
+    alone are not; the copy must still take the frames (and analogs) from the source."""
+    _make(tmp_path / "a.c3d", n_frames=60, n_points=1, analog_ratio=4)  # 960 + 2880 bytes
+    m = read_c3d(tmp_path / "a.c3d")
+    write_like(tmp_path / "e.c3d", m, m.xyz)
+    monkeypatch.setattr(c3d_stream, "STREAM_BYTES", 1000)
+    s = read_c3d(tmp_path / "a.c3d")
+    assert s.source["frames_at"] is not None
+    write_like(tmp_path / "s.c3d", s, s.xyz)
+    assert (tmp_path / "s.c3d").read_bytes() == (tmp_path / "e.c3d").read_bytes()
+    back = ezc3d.c3d(str(tmp_path / "s.c3d"))
+    np.testing.assert_array_equal(
+        back["data"]["analogs"], ezc3d.c3d(str(tmp_path / "a.c3d"))["data"]["analogs"]
+    )
 
 
 def test_residual_words_are_encoded_and_decoded_as_ezc3d_does():

@@ -423,8 +423,10 @@ def _write_c3d(path: Path, m: Markers, xyz: np.ndarray, filled: np.ndarray | Non
         residual[filled] = C3D_RESIDUALS["filled"]
     residual[np.isnan(xyz).any(axis=2)] = C3D_RESIDUALS["missing"]
     set_param(c, "ACM_RS", "FILLED_RESIDUAL", [float(C3D_RESIDUALS["filled"])])
-    if n_frames > 65535 or 16 * n_frames * n_markers > c3d_stream.STREAM_BYTES:
-        # frames in blocks after ezc3d's header and parameters (bounded memory)
+    big = n_frames > 65535 or 16 * n_frames * n_markers > c3d_stream.STREAM_BYTES
+    if big or m.source.get("frames_at") is not None:
+        # frames in blocks after ezc3d's header and parameters (bounded memory); always for a
+        # source read in blocks, whose ezc3d object holds one frame (of analogs too)
         c3d_stream.write_streamed(path, c, xyz, residual, m.source.get("frames_at"))
         return
     pts = np.ones((4, n_markers, n_frames))
