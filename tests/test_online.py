@@ -30,19 +30,14 @@ def _masked(det, lik, pcutoff=0.9):
     return out
 
 
-def test_online_filter_equals_the_offline_forward_pass(data):
-    """Frame by frame through the Python wrapper and the binding = the offline filter with
-    the same parameters and start (sec. 4.7 fit of the first frame), to rounding."""
+def _offline(data, online, smooth: bool):
+    """The native offline E-step (filter, or filter + smoother) with the learned parameters
+    from the online tracker's start (sec. 4.7 fit of the first frame): joints and SDs."""
     sk, rig, det, lik, _, res = data
-    online = acm_rs.OnlineTracker.from_result(res, vz_shrinkage=0.0)
-    joints = np.array([online.update(det[:, t], lik[:, t])[0] for t in range(det.shape[1])])
-    assert online.frames == det.shape[1]
-    # the offline filter (no smoothing) from the same start
     norm = online.norm
     m = _masked(det, lik)
     _, t0, r0 = _first_pose(rig, sk, m, norm)
-    sm = StateMap(sk, norm, True)
-    mu0 = sm.start_state(t0, r0)
+    mu0 = StateMap(sk, norm, True).start_state(t0, r0)
     lim = sk.joint_limits
     x = norm.normalize_pixels(m).transpose(1, 0, 2, 3)
     nt = _native.NativeTracker(
@@ -50,8 +45,19 @@ def test_online_filter_equals_the_offline_forward_pass(data):
         np.ascontiguousarray(lim[..., 1]), norm._tuple(), True, np.ascontiguousarray(x),
     )  # fmt: skip
     p = res.info["params"]
-    nt.e_step(mu0, p["V0"], p["Vz"], p["Vx_diag"], gate_threshold(DEFAULT_GATE), False)
-    _, off_joints, _, _, _ = nt.posterior()
+    nt.e_step(mu0, p["V0"], p["Vz"], p["Vx_diag"], gate_threshold(DEFAULT_GATE), smooth, False)
+    _, joints, _, sd, _ = nt.posterior()
+    return joints, sd
+
+
+def test_online_filter_equals_the_offline_forward_pass(data):
+    """Frame by frame through the Python wrapper and the binding = the offline filter with
+    the same parameters and start (sec. 4.7 fit of the first frame), to rounding."""
+    sk, rig, det, lik, _, res = data
+    online = acm_rs.OnlineTracker.from_result(res, vz_shrinkage=0.0)
+    joints = np.array([online.update(det[:, t], lik[:, t])[0] for t in range(det.shape[1])])
+    assert online.frames == det.shape[1]
+    off_joints, _ = _offline(data, online, smooth=False)  # the filter from the same start
     np.testing.assert_allclose(joints, off_joints, rtol=0, atol=1e-9)
 
 
@@ -68,19 +74,7 @@ def test_full_lag_window_is_the_offline_smoother_with_fixed_parameters(data):
     j0, s0, _ = online.lagged()
     np.testing.assert_array_equal(joints[0], j0)
     np.testing.assert_array_equal(sd[0], s0)
-    norm = online.norm
-    m = _masked(det, lik)
-    _, t0, r0 = _first_pose(rig, sk, m, norm)
-    mu0 = StateMap(sk, norm, True).start_state(t0, r0)
-    lim = sk.joint_limits
-    x = norm.normalize_pixels(m).transpose(1, 0, 2, 3)
-    nt = _native.NativeTracker(
-        sk._native, rig.get_params(), np.ascontiguousarray(lim[..., 0]),
-        np.ascontiguousarray(lim[..., 1]), norm._tuple(), True, np.ascontiguousarray(x),
-    )  # fmt: skip
-    p = res.info["params"]
-    nt.e_step(mu0, p["V0"], p["Vz"], p["Vx_diag"], gate_threshold(DEFAULT_GATE), True, False)
-    _, off_joints, _, off_sd, _ = nt.posterior()
+    off_joints, off_sd = _offline(data, online, smooth=True)
     np.testing.assert_allclose(joints, off_joints, rtol=0, atol=1e-8)
     np.testing.assert_allclose(sd, off_sd, rtol=1e-6, atol=1e-10)
 

@@ -43,7 +43,8 @@ _INTEL = 84
 
 def header_layout(p: Path) -> dict[str, Any] | None:
     """The raw header of a C3D: data offset (bytes), points, analog words per frame, scale,
-    processor; None when the file is too short for a header (the readers refuse it later)."""
+    processor, first and last frame (words 4 and 5); None when the file is too short for a
+    header (the readers refuse it later)."""
     with open(p, "rb") as fh:
         head = fh.read(512)
         if len(head) < 512 or head[0] < 2:
@@ -63,6 +64,7 @@ def header_layout(p: Path) -> dict[str, Any] | None:
         "scale": scale,
         "processor": params[3],
         "first": first,
+        "last": last,
     }
 
 

@@ -251,14 +251,10 @@ def _c3d_header_frames(p: Path) -> int | None:
     """Frames in the raw C3D header (words 4 and 5: first and last frame), None if saturated
     (65535) or unreadable. ezc3d shortens its copy of the header to the data it found, so a
     truncated file is recognised from the bytes."""
-    with open(p, "rb") as fh:
-        head = fh.read(512)
-        if len(head) < 10 or head[0] < 2:
-            return None
-        fh.seek((head[0] - 1) * 512)
-        params = fh.read(4)
-    big = len(params) == 4 and params[3] == 86  # MIPS processor: big-endian words
-    first, last = np.frombuffer(head[6:10], dtype=">u2" if big else "<u2").astype(int)
+    h = c3d_stream.header_layout(p)
+    if h is None:
+        return None
+    first, last = h["first"], h["last"]
     if last >= 65535 or last < first:
         return None
     return int(last - first + 1)
