@@ -248,6 +248,24 @@ def test_c3d_round_trip(result, tmp_path):
     assert m.filled is not None and m.filled[0, 1].all() and not m.filled[0, 0].any()
 
 
+def test_long_c3d_export_writes_the_bytes_ezc3d_writes(tmp_path, monkeypatch):
+    """Above the block threshold (long recordings) the frames are written in blocks after
+    ezc3d's header and parameters: the same file as ezc3d writes."""
+    pytest.importorskip("ezc3d")
+    from acm_rs.gapfill import c3d_stream
+
+    res = synthetic_result(n_frames=7, seed=8)
+    res.markers[3, 2] = np.nan
+    res.detections[:, 1, 0] = np.nan  # marker 0 unseen in frame 1 -> placed by the model
+    a = export.to_c3d(res, tmp_path / "a.c3d", rate=100.0, joints=True)
+    monkeypatch.setattr(c3d_stream, "STREAM_BYTES", 0)
+    calls = []
+    real = c3d_stream.write_streamed
+    monkeypatch.setattr(c3d_stream, "write_streamed", lambda *a: calls.append(1) or real(*a))
+    b = export.to_c3d(res, tmp_path / "b.c3d", rate=100.0, joints=True)
+    assert calls and a.read_bytes() == b.read_bytes()
+
+
 def test_c3d_units_and_errors(result, tmp_path):
     ezc3d = pytest.importorskip("ezc3d")
     path = export.to_c3d(result, tmp_path / "m.c3d", rate=30, units="m")

@@ -58,6 +58,7 @@ def to_c3d(
     """
     import ezc3d
 
+    from ..gapfill import c3d_stream
     from ..gapfill.io import C3D_RESIDUALS, set_c3d_frame_count
 
     path = Path(path)
@@ -92,24 +93,28 @@ def to_c3d(
     xyz = np.concatenate(pts, axis=1) * scale  # (T, P, 3)
     measured = np.concatenate(seen, axis=1)  # (T, P)
     n_t, n_p = xyz.shape[:2]
-    data = np.ones((4, n_p, n_t))
-    data[:3] = xyz.transpose(2, 1, 0)
-    valid = np.all(np.isfinite(xyz), axis=2).T  # (P, T)
-    data[:3, ~valid] = np.nan
+    valid = np.all(np.isfinite(xyz), axis=2)  # (T, P)
     measured_r, filled_r = C3D_RESIDUALS["measured_unknown"], C3D_RESIDUALS["filled"]
-    residuals = np.where(
-        valid, np.where(measured.T, measured_r, filled_r), C3D_RESIDUALS["missing"]
-    )[None]
+    residuals = np.where(valid, np.where(measured, measured_r, filled_r), C3D_RESIDUALS["missing"])
 
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [float(rate)]
     c["parameters"]["POINT"]["LABELS"]["value"] = labels
     c["parameters"]["POINT"]["DESCRIPTIONS"]["value"] = descriptions
     c["parameters"]["POINT"]["UNITS"]["value"] = [units]
-    c["data"]["points"] = data
-    c["data"]["meta_points"]["residuals"] = residuals
     c.add_parameter("PROCESSING", "SOFTWARE", "acm-rs")
     c.add_parameter("ACM_RS", "FILLED_RESIDUAL", [float(filled_r)])
+    if n_t > 65535 or 16 * n_t * n_p > c3d_stream.STREAM_BYTES:
+        # long recordings: ezc3d's header and parameters, the frames in blocks (the same
+        # bytes as ezc3d writes, in bounded memory; gapfill/c3d_stream.py)
+        xyz[~valid] = np.nan
+        c3d_stream.write_streamed(path, c, xyz, residuals, None)
+        return path
+    data = np.ones((4, n_p, n_t))
+    data[:3] = xyz.transpose(2, 1, 0)
+    data[:3, ~valid.T] = np.nan
+    c["data"]["points"] = data
+    c["data"]["meta_points"]["residuals"] = residuals.T[None]
     set_c3d_frame_count(c, n_t)  # recordings over 65535 frames
     with atomic_path(path) as tmp:
         c.write(str(tmp))
