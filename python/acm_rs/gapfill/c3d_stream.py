@@ -92,7 +92,9 @@ def read_parameters(p: Path):
 
     h = header_layout(p)
     with open(p, "rb") as fh:
-        head = bytearray(fh.read(h["offset"] + 4 * h["words"]))
+        # one frame, and some bytes more in case the parameters size a frame larger than the
+        # header does (ezc3d then reads past it; past the end of a file it would crash)
+        head = bytearray(fh.read(h["offset"] + 8 * h["words"] + 512))
     head[8:10] = struct.pack("<H", h["first"])  # last frame = first frame
     base = (head[0] - 1) * 512
     sec = bytes(head[base : h["offset"]])
@@ -112,8 +114,10 @@ def read_parameters(p: Path):
         if name == "ACTUAL_END_FIELD":
             start = _find_parameter(sec, "TRIAL", "ACTUAL_START_FIELD")
             if start is None or start[1] != kind or start[2] != count:
-                continue
-            one = np.frombuffer(sec[start[0] : start[0] + abs(kind) * count], dtype=dtype).copy()
+                one[:] = 0
+                one[0] = 1  # frame 1
+            else:
+                one = np.frombuffer(sec[start[0] : start[0] + abs(kind) * count], dtype=dtype)
         else:
             one[0] = 1
         head[at : at + abs(kind) * count] = one.astype(dtype).tobytes()
