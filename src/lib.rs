@@ -25,6 +25,7 @@ pub mod camera;
 pub mod emission;
 pub mod error;
 pub mod gapfill;
+pub mod kernels;
 pub mod learning;
 pub mod limits;
 pub mod normalization;

@@ -1,6 +1,7 @@
 """The exact streaming smoother of long recordings (issue 16 item 1): checkpointed filtered
-states with recomputation must reproduce the smoother of the whole recording, restart where
-the filter has lost the animal, and never leave a partial file."""
+states with recomputation, or with the filtered moments spilled to disk, must reproduce the
+smoother of the whole recording, restart where the filter has lost the animal, and never
+leave a partial file or a spill behind."""
 
 from __future__ import annotations
 
@@ -26,20 +27,51 @@ def _stream(case, path, det=None, **kw):
     return S.smooth_streaming(case["model"], src, path, **kw)
 
 
-def test_segments_reproduce_the_smoother_of_the_whole_recording(case, tmp_path):
+@pytest.mark.parametrize("spill", [True, False])
+def test_segments_reproduce_the_smoother_of_the_whole_recording(case, tmp_path, spill):
     # one window over the whole recording is the exact smoother; the segments' checkpoints
     # and backward starts must give the same numbers (boundaries at 130, 260, 390 cut
-    # through the camera outage)
+    # through the camera outage), with the filtered moments spilled or filtered again
     whole = L.smooth_window(case["model"], case["det"], case["lik"])
-    info = _stream(case, tmp_path / "s.h5", segment=130, poor_fit=None)
+    info = _stream(case, tmp_path / "s.h5", segment=130, poor_fit=None, spill=spill)
     out = acm_rs.read_chunked(tmp_path / "s.h5")
     assert info["n_segments"] == 4
+    assert info["spill"] is spill
+    assert [p.name for p in tmp_path.iterdir()] == ["s.h5"]  # the spill is gone
     for k in ("joints", "joints_std", "markers", "markers_std"):
         np.testing.assert_allclose(out[k], whole[k], rtol=0, atol=1e-9, err_msg=k)
     np.testing.assert_array_equal(out["status"], whole["status"])
     assert info["stats"]["used"] == whole["stats"]["used"]
     err = np.linalg.norm(out["joints"] - case["truth"], axis=-1).mean()
     assert err < 0.2  # cm: the smoother actually tracks
+
+
+def test_spill_is_the_same_bit_for_bit(case, tmp_path):
+    # the spilled moments are the filter's own (lower triangles of exactly symmetric
+    # matrices): the backward pass must not see a difference
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    a = _stream(case, tmp_path / "a.h5", segment=170, poor_fit=None, spill=scratch)
+    b = _stream(case, tmp_path / "b.h5", segment=170, poor_fit=None, spill=False)
+    ns, n_x = np.size(case["model"].params["mu0"]), 2 * len(case["rig"]) * case["sk"].n_markers
+    assert a["spill"] and a["spill_bytes"] == S.spill_bytes(N, ns, n_x, n_segments=3)
+    assert not b["spill"] and b["no_spill_reason"] == "spill=False"
+    assert list(scratch.iterdir()) == []
+    ra, rb = (acm_rs.read_chunked(tmp_path / f) for f in ("a.h5", "b.h5"))
+    for k in ("joints", "joints_std", "markers", "markers_std", "t", "r", "status"):
+        np.testing.assert_array_equal(ra[k], rb[k], err_msg=k)
+
+
+def test_spill_where_the_disk_has_room(case, tmp_path, monkeypatch):
+    # "auto" spills only where the disk keeps SPILL_RESERVE free; otherwise it filters
+    # again and says why
+    monkeypatch.setattr(S, "SPILL_RESERVE", 2**62)
+    info = _stream(case, tmp_path / "r.h5", segment=250, poor_fit=None)
+    assert not info["spill"] and "GB free" in info["no_spill_reason"]
+    with pytest.raises(ValueError, match="does not exist"):
+        _stream(case, tmp_path / "x.h5", spill=tmp_path / "missing")
+    with pytest.raises(ValueError, match="spill must be"):
+        _stream(case, tmp_path / "x.h5", spill=3)
 
 
 def test_poorly_fit_stretches_are_reported(case, tmp_path):
@@ -79,6 +111,12 @@ def test_failure_leaves_no_file(case, tmp_path, monkeypatch):
     monkeypatch.setattr(S, "frame_px", boom)
     with pytest.raises(RuntimeError, match="boom"):
         _stream(case, tmp_path / "f.h5", segment=200)
+    assert list(tmp_path.iterdir()) == []
+    # a failure in the backward pass (after the spill is written) leaves nothing either
+    monkeypatch.undo()
+    monkeypatch.setattr(S, "_finish", boom)
+    with pytest.raises(RuntimeError, match="boom"):
+        _stream(case, tmp_path / "g.h5", segment=200, spill=True)
     assert list(tmp_path.iterdir()) == []
 
 

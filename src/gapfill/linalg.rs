@@ -1,7 +1,10 @@
 //! Small dense helpers on `nalgebra::DMatrix` for the `d̂ × d̂` algebra of the smoother.
 
 use crate::error::{AcmError, Result};
+use crate::kernels::{cholesky_in_place as chol_kernel, dispatch};
 use nalgebra::{DMatrix, SymmetricEigen};
+
+pub use crate::kernels::{cholesky_in_place, dot};
 
 /// `out = Aᵀ B` (`ma × mb`, column-major) for column-major `A` (`n × ma`) and `B` (`n × mb`),
 /// through the `matrixmultiply` kernels.
@@ -82,90 +85,49 @@ pub fn sorted_eigen(m: DMatrix<f64>) -> (Vec<f64>, DMatrix<f64>) {
     (vals, vecs)
 }
 
-/// Runs `$body` compiled for AVX2 + FMA when the CPU has them (runtime dispatch), else for the
-/// baseline target: the column-oriented kernels below vectorise twice as wide.
-macro_rules! dispatch {
-    ($name:ident($($arg:ident : $ty:ty),*) -> $ret:ty $body:block) => {
-        fn $name($($arg: $ty),*) -> $ret {
-            #[inline(always)]
-            fn kernel($($arg: $ty),*) -> $ret $body
-            #[cfg(target_arch = "x86_64")]
-            {
-                #[target_feature(enable = "avx2,fma")]
-                unsafe fn wide($($arg: $ty),*) -> $ret {
-                    kernel($($arg),*)
-                }
-                if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
-                    // SAFETY: the CPU supports the enabled features (checked above).
-                    return unsafe { wide($($arg),*) };
+dispatch!(
+    fn lower_inverse_kernel(ls: &[f64], ws: &mut [f64], n: usize) -> () {
+        let mut dinv = [0.0f64; 128];
+        let big = n > dinv.len();
+        if !big {
+            for j in 0..n {
+                dinv[j] = 1.0 / ls[j * n + j];
+            }
+        }
+        for c in 0..n {
+            let col = &mut ws[c * n..(c + 1) * n];
+            col[c] = 1.0;
+            for j in c..n {
+                let lj = &ls[j * n..(j + 1) * n];
+                let v = if big {
+                    col[j] / lj[j]
+                } else {
+                    col[j] * dinv[j]
+                };
+                col[j] = v;
+                if v != 0.0 {
+                    for (x, y) in col[j + 1..].iter_mut().zip(&lj[j + 1..]) {
+                        *x -= v * y;
+                    }
                 }
             }
-            kernel($($arg),*)
         }
-    };
-}
+    }
+);
 
-dispatch!(chol_kernel(a: &mut [f64], n: usize) -> bool {
-    for j in 0..n {
-        let (done, rest) = a.split_at_mut(j * n);
-        let cj = &mut rest[..n];
-        for p in 0..j {
-            let cp = &done[p * n..(p + 1) * n];
-            let f = cp[j];
-            if f != 0.0 {
-                for (x, y) in cj[j..].iter_mut().zip(&cp[j..]) {
-                    *x -= f * y;
-                }
-            }
-        }
-        let djj = cj[j];
-        if !(djj > 0.0 && djj.is_finite()) {
-            return false;
-        }
-        let d = djj.sqrt();
-        cj[j] = d;
-        let inv = 1.0 / d;
-        cj[j + 1..].iter_mut().for_each(|x| *x *= inv);
-        cj[..j].iter_mut().for_each(|x| *x = 0.0);
-    }
-    true
-});
-
-dispatch!(lower_inverse_kernel(ls: &[f64], ws: &mut [f64], n: usize) -> () {
-    let mut dinv = [0.0f64; 128];
-    let big = n > dinv.len();
-    if !big {
-        for j in 0..n {
-            dinv[j] = 1.0 / ls[j * n + j];
-        }
-    }
-    for c in 0..n {
-        let col = &mut ws[c * n..(c + 1) * n];
-        col[c] = 1.0;
-        for j in c..n {
-            let lj = &ls[j * n..(j + 1) * n];
-            let v = if big { col[j] / lj[j] } else { col[j] * dinv[j] };
-            col[j] = v;
-            if v != 0.0 {
-                for (x, y) in col[j + 1..].iter_mut().zip(&lj[j + 1..]) {
-                    *x -= v * y;
+dispatch!(
+    fn outer_kernel(g: &mut [f64], v: &[f64], k: usize, idx: &[u32], sign: f64) -> () {
+        for &i in idx {
+            let row = &v[i as usize * k..(i as usize + 1) * k];
+            for (b, &vb) in row.iter().enumerate() {
+                let f = sign * vb;
+                for (gab, va) in g[b * k..(b + 1) * k].iter_mut().zip(row) {
+                    *gab += va * f;
                 }
             }
         }
     }
-});
-
-dispatch!(outer_kernel(g: &mut [f64], v: &[f64], k: usize, idx: &[u32], sign: f64) -> () {
-    for &i in idx {
-        let row = &v[i as usize * k..(i as usize + 1) * k];
-        for (b, &vb) in row.iter().enumerate() {
-            let f = sign * vb;
-            for (gab, va) in g[b * k..(b + 1) * k].iter_mut().zip(row) {
-                *gab += va * f;
-            }
-        }
-    }
-});
+);
 
 /// `G += sign · Σ_{i ∈ idx} v_i v_iᵀ` for the rows `v_i` of the row-major `· × k` matrix `v`.
 pub fn add_outer(g: &mut DMatrix<f64>, v: &[f64], k: usize, idx: &[u32], sign: f64) {
@@ -188,33 +150,35 @@ pub fn lower_inverse(l: &DMatrix<f64>) -> DMatrix<f64> {
     w
 }
 
-dispatch!(gram_lower_kernel(ws: &[f64], ts: &mut [f64], out: &mut [f64], n: usize) -> () {
-    // ts = Wᵀ (column i of ts = row i of W: entries 0..=i contiguous).
-    for c in 0..n {
-        for r in c..n {
-            ts[r * n + c] = ws[c * n + r];
+dispatch!(
+    fn gram_lower_kernel(ws: &[f64], ts: &mut [f64], out: &mut [f64], n: usize) -> () {
+        // ts = Wᵀ (column i of ts = row i of W: entries 0..=i contiguous).
+        for c in 0..n {
+            for r in c..n {
+                ts[r * n + c] = ws[c * n + r];
+            }
         }
-    }
-    // Column b of the lower triangle: M[b..=i, b] += W_ib · W[i, b..=i] over i ≥ b.
-    for b in 0..n {
-        let (wb, ob) = (&ws[b * n..(b + 1) * n], b * n);
-        for i in b..n {
-            let f = wb[i];
-            if f != 0.0 {
-                let src = &ts[i * n + b..i * n + i + 1];
-                for (o, t) in out[ob + b..ob + i + 1].iter_mut().zip(src) {
-                    *o += f * t;
+        // Column b of the lower triangle: M[b..=i, b] += W_ib · W[i, b..=i] over i ≥ b.
+        for b in 0..n {
+            let (wb, ob) = (&ws[b * n..(b + 1) * n], b * n);
+            for i in b..n {
+                let f = wb[i];
+                if f != 0.0 {
+                    let src = &ts[i * n + b..i * n + i + 1];
+                    for (o, t) in out[ob + b..ob + i + 1].iter_mut().zip(src) {
+                        *o += f * t;
+                    }
                 }
             }
         }
-    }
-    // Mirror to the upper triangle.
-    for c in 0..n {
-        for r in c + 1..n {
-            out[r * n + c] = out[c * n + r];
+        // Mirror to the upper triangle.
+        for c in 0..n {
+            for r in c + 1..n {
+                out[r * n + c] = out[c * n + r];
+            }
         }
     }
-});
+);
 
 /// Inverse of a symmetric positive-definite matrix, `A⁻¹ = L⁻ᵀ L⁻¹` (exactly symmetric), or
 /// `None`: Cholesky, triangular inverse and the triangular Gram product (`n³` flops in all).
@@ -326,12 +290,6 @@ pub fn sym_matvec_packed_add(m: &[f64], n: usize, v: &[f64], out: &mut [f64]) {
     }
 }
 
-/// In-place lower Cholesky factorisation of the column-major `n × n` matrix `a` (only its lower
-/// triangle is read; the upper triangle is zeroed). `false` if `a` is not positive definite.
-pub fn cholesky_in_place(a: &mut [f64], n: usize) -> bool {
-    chol_kernel(a, n)
-}
-
 /// `out = A⁻¹` (column-major, symmetric) from the lower Cholesky factor `l` of `A`, using the
 /// scratch buffers `w`, `t` (each `n²`).
 pub fn inverse_from_cholesky(l: &[f64], n: usize, w: &mut [f64], t: &mut [f64], out: &mut [f64]) {
@@ -339,27 +297,6 @@ pub fn inverse_from_cholesky(l: &[f64], n: usize, w: &mut [f64], t: &mut [f64], 
     lower_inverse_kernel(l, w, n);
     out.iter_mut().for_each(|x| *x = 0.0);
     gram_lower_kernel(w, t, out, n);
-}
-
-/// Dot product with eight independent accumulators (vectorises without reassociation flags).
-#[inline]
-pub fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0f64; 8];
-    let ca = a.chunks_exact(8);
-    let cb = b.chunks_exact(8);
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for i in 0..8 {
-            acc[i] += x[i] * y[i];
-        }
-    }
-    let mut s = ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
-    for (x, y) in ra.iter().zip(rb) {
-        s += x * y;
-    }
-    s
 }
 
 #[cfg(test)]

@@ -20,11 +20,14 @@ pub(super) struct PyTracker {
     pool: Option<rayon::ThreadPool>,
 }
 
-/// Runs `f` on `pool` if there is one, else on the caller's (global) pool.
+/// Runs `f` inside a worker of `pool` if there is one, else of the global pool: the
+/// parallel loops in `f` (sigma points, Gram products) then share work between the pool's
+/// workers instead of each being injected into the pool from outside and waited for.
+/// Measured on a 2,000-frame segment of the rat (2 vCPU): filter 1,750 → 2,250 frames/s.
 fn in_pool<R: Send>(pool: &Option<rayon::ThreadPool>, f: impl FnOnce() -> R + Send) -> R {
     match pool {
         Some(p) => p.install(f),
-        None => f(),
+        None => rayon::scope(|_| f()),
     }
 }
 
@@ -292,6 +295,45 @@ impl PyTracker {
         .map_err(to_py)
     }
 
+    /// The whole-state moments of the last `e_step(smooth=False)` for a spill file:
+    /// `(means (T+1, ns), packed (T+1, ns (ns + 1) / 2))`, the covariances' lower triangles
+    /// column by column (`Tracker::filtered_packed`).
+    fn filtered_packed<'py>(&self, py: Python<'py>) -> PyResult<(Out<'py>, Out<'py>)> {
+        let (m, packed) = self.inner.filtered_packed().map_err(to_py)?;
+        let steps = self.inner.n_frames() + 1;
+        let ns = self.inner.n_state();
+        let tri = packed.len() / steps;
+        Ok((
+            out(py, m.to_vec(), &[steps, ns])?,
+            out(py, packed, &[steps, tri])?,
+        ))
+    }
+
+    /// Restores a filter pass saved by `filtered_packed()` and `mask()` (e.g. from a spill
+    /// file) so that `smooth_filtered` can follow without filtering again.
+    fn load_filtered(
+        &mut self,
+        py: Python<'_>,
+        means: Arr<'_>,
+        packed: Arr<'_>,
+        mask: numpy::PyReadonlyArrayDyn<'_, u8>,
+    ) -> PyResult<()> {
+        let (steps, ns) = (self.inner.n_frames() + 1, self.inner.n_state());
+        let m = view(&means, "means", &[Some(steps), Some(ns)])?.to_vec();
+        let p = view(&packed, "packed", &[Some(steps), Some(ns * (ns + 1) / 2)])?.to_vec();
+        let em = self.inner.emission();
+        let mask_shape = [
+            Some(steps - 1),
+            Some(em.cameras.len()),
+            Some(em.skeleton.n_markers()),
+            Some(2),
+        ];
+        let mk = view(&mask, "mask", &mask_shape)?.to_vec();
+        let inner = &mut self.inner;
+        py.detach(|| inner.load_filtered(&m, &p, &mk))
+            .map_err(to_py)
+    }
+
     /// Moments of the whole state (`ns = order · n`, position first) at row `k` of the last
     /// pass (`0..=T`; negative counts from the end): `(mean (ns,), cov (ns, ns))`; after
     /// `e_step(smooth=False)` the filtered ones (the checkpoint of a long recording).
@@ -504,7 +546,8 @@ impl PyOnlineTracker {
         let m = self.inner.emission().skeleton.n_markers();
         let xs = view(&x, "x", &[Some(self.n_cams), Some(m), Some(2)])?;
         let inner = &mut self.inner;
-        py.detach(|| inner.update(xs)).map_err(to_py)
+        py.detach(|| rayon::scope(|_| inner.update(xs)))
+            .map_err(to_py)
     }
 
     /// Joints and SD of the last filtered frame.

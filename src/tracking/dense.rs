@@ -2,9 +2,11 @@
 //! symmetric rank-k products through `matrixmultiply` (AVX2/FMA kernels), triangular solves.
 //!
 //! Matrices are flat `Vec<f64>`/slices; covariances are symmetric so row- and column-major
-//! coincide. nalgebra handles the small factorisations (n_state ≤ ~100).
+//! coincide. The factorisations and triangular solves use the run-time dispatched
+//! column kernels of [`crate::kernels`] (2-4× nalgebra's generic loops at n ≈ 50-100).
 
 use crate::error::{AcmError, Result};
+use crate::kernels::{cholesky_in_place, lower_solve_in_place, lower_tr_solve_in_place};
 use nalgebra::{DMatrix, DVector};
 
 /// Relative jitter levels tried when a covariance is not numerically positive definite
@@ -20,25 +22,26 @@ const JITTER: [f64; 4] = [1e-12, 1e-10, 1e-8, 1e-6];
 /// [`AcmError::Numerical`] naming `what` if the matrix is not positive definite even with the
 /// largest jitter, or contains non-finite values.
 pub fn cholesky(a: &[f64], n: usize, what: &dyn Fn() -> String) -> Result<DMatrix<f64>> {
-    let mut m = DMatrix::from_column_slice(n, n, a);
-    if m.iter().any(|v| !v.is_finite()) {
+    if a.iter().any(|v| !v.is_finite()) {
         return Err(AcmError::Numerical(format!(
             "{} contains NaN or infinity",
             what()
         )));
     }
+    let mut m = DMatrix::from_column_slice(n, n, a);
     symmetrize(&mut m);
-    if let Some(c) = m.clone().cholesky() {
-        return Ok(c.unpack());
+    let mut l = m.clone();
+    if cholesky_in_place(l.as_mut_slice(), n) {
+        return Ok(l);
     }
     let scale = (m.trace() / n as f64).abs().max(f64::MIN_POSITIVE);
     for eps in JITTER {
-        let mut j = m.clone();
+        l.copy_from(&m);
         for i in 0..n {
-            j[(i, i)] += eps * scale;
+            l[(i, i)] += eps * scale;
         }
-        if let Some(c) = j.cholesky() {
-            return Ok(c.unpack());
+        if cholesky_in_place(l.as_mut_slice(), n) {
+            return Ok(l);
         }
     }
     let min_diag = (0..n).map(|i| m[(i, i)]).fold(f64::INFINITY, f64::min);
@@ -63,14 +66,21 @@ pub fn symmetrize(m: &mut DMatrix<f64>) {
 
 /// Solves `L Lᵀ x = b` in place for a lower Cholesky factor `l`.
 pub fn chol_solve_vec(l: &DMatrix<f64>, b: &mut DVector<f64>) {
-    l.solve_lower_triangular_mut(b);
-    l.tr_solve_lower_triangular_mut(b);
+    let n = l.nrows();
+    lower_solve_in_place(l.as_slice(), n, b.as_mut_slice());
+    lower_tr_solve_in_place(l.as_slice(), n, b.as_mut_slice());
 }
 
 /// Solves `L Lᵀ X = B` in place for a lower Cholesky factor `l` (columns of `b`).
 pub fn chol_solve_mat(l: &DMatrix<f64>, b: &mut DMatrix<f64>) {
-    l.solve_lower_triangular_mut(b);
-    l.tr_solve_lower_triangular_mut(b);
+    let n = l.nrows();
+    lower_solve_in_place(l.as_slice(), n, b.as_mut_slice());
+    lower_tr_solve_in_place(l.as_slice(), n, b.as_mut_slice());
+}
+
+/// Solves `L X = B` in place for a lower-triangular `l` with a non-zero diagonal.
+pub fn lower_solve_mat(l: &DMatrix<f64>, b: &mut DMatrix<f64>) {
+    lower_solve_in_place(l.as_slice(), l.nrows(), b.as_mut_slice());
 }
 
 /// `c ← c + a aᵀ` for `a` stored row-major as `rows × k` (each row one vector), `c` the

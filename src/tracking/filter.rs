@@ -24,6 +24,7 @@ use super::dense::{add_gram_rows, cholesky, symmetrize};
 use super::model::Emission;
 use super::Params;
 use crate::error::Result;
+use crate::kernels::{cholesky_in_place, lower_solve_in_place};
 use nalgebra::{DMatrix, DVector};
 
 /// Status of one measurement entry in one frame, as used by the last E-step.
@@ -418,7 +419,7 @@ fn linear_update(
     let mu = DVector::from_fn(ns, |r, _| mbar[r] + upd[r]);
     let mut u = DMatrix::zeros(m2, ns);
     u.rows_mut(0, n).copy_from(&w.transpose());
-    lm.solve_lower_triangular_mut(&mut u);
+    super::dense::lower_solve_mat(&lm, &mut u);
     let mut v = super::dense::at_a(&u);
     if ns > n {
         let rest = l_full.columns(n, ns - n);
@@ -680,29 +681,31 @@ fn apply_gate(
     }
     let mut rejected = Vec::new();
     let mut blocks = 0;
+    let (mut sb, mut w) = (vec![0.0; k * k], vec![0.0; k]);
     for (b, acc) in sb_all.chunks_exact(tri).enumerate() {
         let b0 = b * k;
         if (b0..b0 + k).any(|j| mask[j] != status::USED) {
             continue;
         }
         blocks += 1;
-        let mut sb = DMatrix::zeros(k, k);
         let mut e = 0;
         for a in 0..k {
             for c in 0..=a {
-                sb[(a, c)] = inv * acc[e];
-                sb[(c, a)] = inv * acc[e];
+                sb[c * k + a] = inv * acc[e];
+                sb[a * k + c] = inv * acc[e];
                 e += 1;
             }
-            sb[(a, a)] += vx[b0 + a];
+            sb[a * k + a] += vx[b0 + a];
         }
-        let nu = DVector::from_fn(k, |a, _| x_t[b0 + a] - ws.xbar[b0 + a]);
-        let d2 = match sb.cholesky() {
-            Some(c) => {
-                let w = c.l().solve_lower_triangular(&nu).unwrap_or(nu.clone());
-                w.norm_squared()
-            }
-            None => 0.0,
+        for (a, wa) in w.iter_mut().enumerate() {
+            *wa = x_t[b0 + a] - ws.xbar[b0 + a];
+        }
+        // νᵀ S_b⁻¹ ν = |L⁻¹ ν|² (a block whose S_b is not positive definite is not gated)
+        let d2 = if cholesky_in_place(&mut sb, k) {
+            lower_solve_in_place(&sb, k, &mut w);
+            w.iter().map(|v| v * v).sum()
+        } else {
+            0.0
         };
         if d2 > gate {
             rejected.push(b0);

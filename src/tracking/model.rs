@@ -9,7 +9,7 @@ use crate::normalization::Normalization;
 use crate::skeleton::Skeleton;
 
 /// A measurement function `x = g(z)` evaluated for batches of states.
-pub trait Emission: Sync {
+pub trait Emission: Send + Sync {
     /// Dimension of the state `n_z`.
     fn n_state(&self) -> usize;
     /// Dimension of one measurement `n_x`.

@@ -638,3 +638,48 @@ fn segments_with_checkpoints_reproduce_the_whole_smoother() {
         assert!(tr.smooth_filtered(&p, None).is_err()); // already smoothed
     }
 }
+
+/// The spill of the streaming smoother: the filtered moments stored compactly and loaded
+/// into a fresh tracker give the same smoother as the tracker that filtered, bit for bit;
+/// wrong lengths, NaN and unknown statuses are refused.
+#[test]
+fn filtered_moments_survive_a_spill() {
+    for order in [1, 2] {
+        let (em, x, mut p, n, n_x, _) = linear_problem(5);
+        let ns = order * n;
+        if order == 2 {
+            let mut q = Params::initial(vec![0.0; ns], n_x, 0.01);
+            q.mu0[..n].copy_from_slice(&p.mu0);
+            q.vx = p.vx.clone();
+            p = q;
+        }
+        let fresh = || {
+            let mut tr = Tracker::new(em.clone(), x.clone()).unwrap();
+            tr.set_order(order).unwrap();
+            tr
+        };
+        let mut a = fresh();
+        assert!(a.filtered_packed().is_err()); // no filter pass yet
+        a.filter(&p, Some(9.0)).unwrap();
+        let (means, packed) = a.filtered_packed().unwrap();
+        let (means, mask) = (means.to_vec(), a.mask().to_vec());
+        assert_eq!(packed.len() * 2, (a.n_frames() + 1) * ns * (ns + 1));
+        let mut b = fresh();
+        b.load_filtered(&means, &packed, &mask).unwrap();
+        assert_eq!(b.state_moments(), a.state_moments());
+        a.smooth_filtered(&p, None).unwrap();
+        b.smooth_filtered(&p, None).unwrap();
+        assert_eq!(b.state_moments(), a.state_moments());
+        assert_eq!(b.mask(), a.mask());
+        let mut c = fresh();
+        assert!(c.load_filtered(&means[1..], &packed, &mask).is_err());
+        assert!(c.load_filtered(&means, &packed[1..], &mask).is_err());
+        assert!(c.load_filtered(&means, &packed, &mask[1..]).is_err());
+        let mut nan = packed.clone();
+        nan[3] = f64::NAN;
+        assert!(c.load_filtered(&means, &nan, &mask).is_err());
+        let mut bad = mask.clone();
+        bad[0] = 7;
+        assert!(c.load_filtered(&means, &packed, &bad).is_err());
+    }
+}

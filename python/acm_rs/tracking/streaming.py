@@ -12,11 +12,22 @@ fps under the velocity model. Instead:
    the same numbers as in step 1 — and smoothed backwards (Alg. 8) starting from the
    smoothed moments at the start of the next segment (``NativeTracker.smooth_filtered``).
 
-The result equals the smoother of the whole recording to rounding (tested); it costs a
-second forward pass, and the refiltering of the next segments runs in parallel with the
-backward pass of the current one. Memory: a few segments' moments (``segment · (order ·
-n)² · 8`` bytes each, 160 MB for the rat's velocity state and the defaults) plus the
-checkpoints (T / segment of them).
+The result equals the smoother of the whole recording to rounding (tested).
+
+**The spill** (default where the disk has room): the forward pass also writes each
+segment's filtered moments to a scratch directory beside the output — means and the lower
+triangles of the covariances in float64 (``(order · n) (order · n + 1) / 2 + order · n``
+values per frame: 10.6 kB for the rat's random walk, 41 kB with velocity; 7.6 / 30 GB for
+an hour at 200 fps) and the entry statuses — and the backward pass reads them back instead
+of filtering again: the same numbers bit for bit (tested), at the cost of disk, not memory.
+The backward pass is pipelined: while one segment is smoothed, the posterior of the
+previous one (joints, markers and their SDs) is computed and written by a second thread.
+Without a spill (``spill=False``, or too little free disk) each segment is filtered again
+from its checkpoint (a second forward pass), ``workers`` segments ahead in parallel with
+the backward pass of the current one.
+
+Memory: a few segments' moments (``segment · (order · n)² · 8`` bytes each, 160 MB for the
+rat's velocity state and the defaults) plus the checkpoints (T / segment of them).
 
 **Sequences.** The filter starts at the first frame with enough detections (the sec. 4.7
 fit, broad prior); segments before it without any such frame are written as NaN.
@@ -35,11 +46,13 @@ about the random walk's posterior of that segment (as the chunked smoother's win
 from __future__ import annotations
 
 import math
+import shutil
 import sys
+import tempfile
 import time
 import warnings
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -86,6 +99,69 @@ def poor_stretches(px: np.ndarray, limit: float, run: int = POOR_FRAMES) -> list
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= run]
 
 
+#: Free disk space left over beyond the spill's size before ``spill="auto"`` spills (bytes).
+SPILL_RESERVE = 2 * 2**30
+
+
+def spill_bytes(n_frames: int, n_state: int, n_meas: int, n_segments: int = 1) -> int:
+    """Disk space of the spill of ``n_frames`` frames (bytes): per frame the filtered mean
+    and the lower triangle of the covariance of the ``n_state``-dimensional state (float64)
+    and ``n_meas`` entry statuses (uint8); one more row per segment (its checkpoint)."""
+    rows = n_frames + n_segments
+    return rows * (n_state + n_state * (n_state + 1) // 2) * 8 + n_frames * n_meas
+
+
+def _spill_dir(spill, out: Path, need: int) -> tuple[Path | None, str]:
+    """The spill's scratch directory (created; None: filter again) and, if none, why."""
+    if spill is None or spill is False:
+        return None, "spill=False"
+    if isinstance(spill, str) and spill == "auto":
+        base = out.parent
+        free = shutil.disk_usage(base).free
+        if free < need + SPILL_RESERVE:
+            return None, (f"{need / 1e9:.1f} GB needed, {free / 1e9:.1f} GB free in {base} "
+                          f"(keeping {SPILL_RESERVE / 2**30:.0f} GiB)")  # fmt: skip
+    elif spill is True:
+        base = out.parent
+    elif isinstance(spill, (str, Path)):
+        base = Path(spill)
+        if not base.is_dir():
+            raise ValueError(f"spill directory {base} does not exist")
+    else:
+        raise ValueError(f"spill must be 'auto', True, False or a directory, got {spill!r}")
+    return Path(tempfile.mkdtemp(prefix=f".{out.name}.spill.", dir=base)), ""
+
+
+def _save_segment(folder: Path, k: int, means, packed, mask) -> None:
+    for name, arr in (("means", means), ("packed", packed), ("mask", mask)):
+        np.save(folder / f"{k}.{name}.npy", arr, allow_pickle=False)
+
+
+def _load_segment(model: _Model, source: _Source, seg: _Segment, folder: Path, k: int):
+    """A tracker of the segment holding its filtered moments read back from the spill (the
+    files are removed once read)."""
+    det = model.detections(*source.window(seg.a, seg.b))
+    native = model.tracker(_normalized(model.norm, det))
+    arrays = []
+    for name in ("means", "packed", "mask"):
+        f = folder / f"{k}.{name}.npy"
+        arrays.append(np.load(f, allow_pickle=False))
+        f.unlink()
+    native.load_filtered(*arrays)
+    return native
+
+
+def _finish(model: _Model, writer: _H5Writer, seg: _Segment, native) -> None:
+    """Posterior of a smoothed segment (poses, joints, markers and their SDs) → the file."""
+    poses, joints, markers, joints_std, markers_std = native.posterior()
+    status = native.mask()[..., 0].transpose(1, 0, 2)
+    res = {
+        "joints": joints, "joints_std": joints_std, "markers": markers,
+        "markers_std": markers_std, "poses": poses, "status": status,
+    }  # fmt: skip
+    writer.write(seg.a, seg.b, res, seg.a)
+
+
 def smooth_streaming(
     model: _Model,
     source: _Source,
@@ -95,6 +171,7 @@ def smooth_streaming(
     poor_fit: float | None = DEFAULT_POOR_FIT,
     typical_px: float | None = None,
     workers: int = 2,
+    spill: str | Path | bool | None = "auto",
     info: dict | None = None,
     progress: bool | None = False,
 ) -> dict:
@@ -105,7 +182,12 @@ def smooth_streaming(
 
     ``poor_fit``: report stretches of ``POOR_FRAMES`` frames that reproject further than
     ``poor_fit × typical_px`` (None: do not). ``typical_px``: a typical frame's 90th
-    percentile reprojection error (default: the median over the first segment's frames)."""
+    percentile reprojection error (default: the median over the first segment's frames).
+    ``spill``: where the forward pass keeps the filtered moments for the backward pass
+    (:func:`spill_bytes` of disk; removed at the end): ``"auto"`` (default) a scratch
+    directory beside ``out`` if that disk has room for it plus ``SPILL_RESERVE``, else none;
+    ``True`` beside ``out`` regardless; a directory; ``False``: none (each segment is
+    filtered again, ``workers`` segments in parallel). The result is the same."""
     t_start = time.perf_counter()
     T = source.n_frames
     if segment < 2:
@@ -114,75 +196,99 @@ def smooth_streaming(
         raise ValueError(f"poor_fit must be > 1 (a multiple of the typical error), got {poor_fit}")
     sm = StateMap(model.skeleton, model.norm, model.joint_limits)
     n = sm.n_state
+    ns = n * model.order
+    n_meas = 2 * len(model.rig) * model.skeleton.n_markers
+    need = spill_bytes(T, ns, n_meas, -(-T // segment))
     show = _on_terminal(progress)
+    out = Path(out)
+    folder, no_spill = _spill_dir(spill, out, need)
     writer = _H5Writer(out, T, model.skeleton, len(model.rig), segment)
     try:
         filtered_px = writer.f.create_dataset(
             "filtered_px", (T,), dtype="f8", chunks=(max(1, min(segment, T)),), fillvalue=np.nan
         )
-        # -- forward: checkpoints --------------------------------------------------------
+        totals: dict[str, float] = {}
+        # -- forward: checkpoints (and the spill) --------------------------------------------
         segs: list[_Segment] = []
         a, prior = 0, None
+        # one segment at a time: its tracker uses all cores (the sigma points and the Gram
+        # products of each frame split between them; 2 vCPU: 2,250 vs 2,000 frames/s)
+        sequential = replace(model, threads=0)
         typical = typical_px if typical_px is not None and math.isfinite(typical_px) else None
-        while a < T:
-            b = min(a + segment, T)
-            if prior is None:
-                det = model.detections(*source.window(a, b))
-                mu = _window_prior(model, det)
-                if mu is None:  # nothing to start from in these frames
-                    a = b
-                    continue
-                prior = (mu, model.prior_cov)
-            seg = _Segment(a, b, prior[0], prior[1])
-            native, det, _ = _filtered(model, source, seg)
-            px = frame_px(model, sm, native.means()[1:, :n], det)
-            if typical is None and np.isfinite(px).any():
-                typical = float(np.nanmedian(px))
-            filtered_px[a:b] = px
-            segs.append(seg)
-            prior = native.state_row(-1)
-            a = b
-            if show:
-                print(f"\rfiltered {a}/{T} frames", end="", file=sys.stderr, flush=True)
-            del native
+        with ThreadPoolExecutor(max_workers=1) as saver:
+            saved: Future | None = None
+            while a < T:
+                b = min(a + segment, T)
+                if prior is None:
+                    det = model.detections(*source.window(a, b))
+                    mu = _window_prior(sequential, det)
+                    if mu is None:  # nothing to start from in these frames
+                        a = b
+                        continue
+                    prior = (mu, model.prior_cov)
+                seg = _Segment(a, b, prior[0], prior[1])
+                native, det, stats = _filtered(sequential, source, seg)
+                for key, v in stats.items():
+                    totals[key] = totals.get(key, 0.0) + float(v)
+                if folder is not None:
+                    means, packed = native.filtered_packed()
+                    if saved is not None:
+                        saved.result()  # one segment in flight: memory stays bounded
+                    saved = saver.submit(_save_segment, folder, len(segs), means, packed,
+                                         native.mask())  # fmt: skip
+                px = frame_px(model, sm, native.means()[1:, :n], det)
+                if typical is None and np.isfinite(px).any():
+                    typical = float(np.nanmedian(px))
+                filtered_px[a:b] = px
+                segs.append(seg)
+                prior = native.state_row(-1)
+                a = b
+                if show:
+                    print(f"\rfiltered {a}/{T} frames", end="", file=sys.stderr, flush=True)
+                del native
+            if saved is not None:
+                saved.result()
         if segs:
             segs[-1].last = True
         limit = None if poor_fit is None or typical is None else poor_fit * typical
         poor = [] if limit is None else poor_stretches(filtered_px[:], limit)
         t_forward = time.perf_counter() - t_start
-        # -- backward: refilter (in parallel, ahead) and smooth --------------------------
-        totals: dict[str, float] = {}
-        with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-            jobs = {}
+        # -- backward: the filtered moments (read back or filtered again, ahead), smoothed;
+        # the posterior and the writing of each segment overlap the next one's smoothing --
+        ahead_n = 1 if folder is not None else max(1, workers)
+        with ThreadPoolExecutor(max_workers=ahead_n) as pool, \
+                ThreadPoolExecutor(max_workers=1) as finisher:  # fmt: skip
+            jobs: dict[int, Future] = {}
             order = list(range(len(segs) - 1, -1, -1))
 
             def ahead(i: int) -> None:
                 if i < len(order) and order[i] not in jobs:
-                    jobs[order[i]] = pool.submit(_filtered, model, source, segs[order[i]])
+                    k = order[i]
+                    if folder is not None:
+                        jobs[k] = pool.submit(_load_segment, model, source, segs[k], folder, k)
+                    else:
+                        jobs[k] = pool.submit(lambda k=k: _filtered(model, source, segs[k])[0])
 
-            for i in range(max(1, workers)):
+            for i in range(ahead_n):
                 ahead(i)
             end = None
+            written: Future | None = None
             for i, k in enumerate(order):
-                native, _, stats = jobs.pop(k).result()
-                for key, v in stats.items():
-                    totals[key] = totals.get(key, 0.0) + float(v)
-                ahead(i + max(1, workers))
+                native = jobs.pop(k).result()
+                ahead(i + ahead_n)
                 seg, p = segs[k], model.params
                 native.smooth_filtered(seg.mu, seg.cov, p["Vz"], p["Vx_diag"],
                                        end=None if seg.last else end)  # fmt: skip
                 end = native.state_row(0)
-                poses, joints, markers, joints_std, markers_std = native.posterior()
-                status = native.mask()[..., 0].transpose(1, 0, 2)
-                res = {
-                    "joints": joints, "joints_std": joints_std, "markers": markers,
-                    "markers_std": markers_std, "poses": poses, "status": status,
-                }  # fmt: skip
-                writer.write(seg.a, seg.b, res, seg.a)
-                del native, res
+                if written is not None:
+                    written.result()
+                written = finisher.submit(_finish, model, writer, seg, native)
+                del native
                 if show:
                     print(f"\rsmoothed {len(order) - i - 1} segments left  ", end="",
                           file=sys.stderr, flush=True)  # fmt: skip
+            if written is not None:
+                written.result()
         if show:
             print(file=sys.stderr)
         if poor:
@@ -201,6 +307,8 @@ def smooth_streaming(
             "typical_px": typical,
             "seconds_forward": t_forward, "seconds_smoothing": time.perf_counter() - t_start,
             "scheduler": f"threads({workers})", "stats": totals,
+            "spill": folder is not None, "spill_bytes": need if folder is not None else 0,
+            "no_spill_reason": no_spill,
             "acm_rs_version": __version__,
         }  # fmt: skip
         stored = dict(info or {}) | run
@@ -214,3 +322,6 @@ def smooth_streaming(
     except BaseException:
         writer.abort()
         raise
+    finally:
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
