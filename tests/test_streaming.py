@@ -90,6 +90,35 @@ def test_poorly_fit_stretches_are_reported(case, tmp_path):
     assert info["poor_fit"] == []
 
 
+def test_restart_where_the_filter_lost_the_animal(case, tmp_path):
+    # every camera 40 px off in frames 300-360: the filtered poses stop fitting at 300, so a
+    # new sequence starts there with a fresh single-frame fit. The sequences are smoothed
+    # on their own: frames before 300 are those of the recording cut at 300, frames from 300
+    # those of the recording starting at 300 (bit for bit).
+    det = case["det"].copy()
+    det[:, 300:360] += 40.0
+    kw = {"segment": 200, "typical_px": 2.0}
+    with pytest.warns(UserWarning, match="reproject"):
+        info = _stream(case, tmp_path / "r.h5", det=det, **kw)
+    assert info["restarts"] == [300] and info["n_restarts"] == 1
+    whole = acm_rs.read_chunked(tmp_path / "r.h5")
+    src = L._Source
+    S.smooth_streaming(case["model"], src(det[:, :300], case["lik"][:, :300]),
+                       tmp_path / "a.h5", **kw)  # fmt: skip
+    with pytest.warns(UserWarning, match="reproject"):
+        S.smooth_streaming(case["model"], src(det[:, 300:], case["lik"][:, 300:]),
+                           tmp_path / "b.h5", **kw)  # fmt: skip
+    a, b = (acm_rs.read_chunked(tmp_path / f) for f in ("a.h5", "b.h5"))
+    for k in ("joints", "joints_std"):
+        np.testing.assert_array_equal(whole[k][:300], a[k], err_msg=k)
+        np.testing.assert_array_equal(whole[k][300:], b[k], err_msg=k)
+    np.testing.assert_array_equal(whole["status"], np.concatenate([a["status"], b["status"]], 1))
+    # restart=False keeps one sequence
+    with pytest.warns(UserWarning, match="reproject"):
+        info = _stream(case, tmp_path / "n.h5", det=det, restart=False, **kw)
+    assert info["restarts"] == []
+
+
 def test_poor_stretches():
     px = np.array([1, 9, 9, 9, 1, 9, 9, np.nan, 9, 9, 9, 9], float)
     assert S.poor_stretches(px, 5.0, run=3) == [(1, 4), (8, 12)]
