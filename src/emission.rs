@@ -100,6 +100,32 @@ impl NormalizedProjector {
     }
 }
 
+impl NormalizedProjector {
+    const ZERO: Self = Self {
+        r: [0.0; 9],
+        t: [0.0; 3],
+        dist: [0.0; 5],
+        affine: [0.0; 4],
+    };
+}
+
+/// Rigs of up to this many cameras keep their projectors on the stack.
+const STACK_CAMERAS: usize = 16;
+
+/// Per-thread scratch of [`emission_batch_into`]: forward kinematics, one pose and its
+/// markers, kept between calls (resized for another skeleton) so that evaluating the sigma
+/// points of a UKF step allocates nothing once each thread has seen one.
+#[derive(Default)]
+struct Scratch {
+    ws: Option<crate::skeleton::FkWorkspace>,
+    pose: Vec<f64>,
+    markers: Vec<f64>,
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
+}
+
 crate::kernels::dispatch!(
     /// Projects one pose's markers into every camera (normalised pixels, camera-major).
     fn project_all(projs: &[NormalizedProjector], markers: &[f64], out: &mut [f64]) -> () {
@@ -255,24 +281,36 @@ pub fn emission_batch_into(
     if block == 0 {
         return Ok(());
     }
-    let projs: Vec<NormalizedProjector> = cameras
-        .iter()
-        .map(|c| NormalizedProjector::new(c, norm))
-        .collect();
+    // the cameras' projectors on the stack (a UKF step allocates nothing; see `Scratch`)
+    let mut on_stack = [NormalizedProjector::ZERO; STACK_CAMERAS];
+    let on_heap: Vec<NormalizedProjector>;
+    let projs: &[NormalizedProjector] = if cameras.len() <= STACK_CAMERAS {
+        for (p, c) in on_stack.iter_mut().zip(cameras) {
+            *p = NormalizedProjector::new(c, norm);
+        }
+        &on_stack[..cameras.len()]
+    } else {
+        on_heap = cameras
+            .iter()
+            .map(|c| NormalizedProjector::new(c, norm))
+            .collect();
+        &on_heap
+    };
     // Tasks of >= 16 states: small enough for work stealing to balance a UKF step's 2n
     // sigma points over the cores (one task per thread measured 30 % slower on this VM).
     out.par_chunks_mut(block)
         .zip(states.par_chunks(ns))
         .with_min_len(16)
-        .for_each_init(
-            || {
-                (
-                    skeleton.workspace(),
-                    vec![0.0; skeleton.n_pose()],
-                    vec![0.0; 3 * skeleton.n_markers()],
-                )
-            },
-            |(ws, pose, markers), (o, z)| {
+        .for_each(|(o, z)| {
+            SCRATCH.with(|cell| {
+                let mut guard = cell.borrow_mut();
+                let Scratch { ws, pose, markers } = &mut *guard;
+                if !ws.as_ref().is_some_and(|w| w.fits(skeleton)) {
+                    *ws = Some(skeleton.workspace());
+                }
+                let ws = ws.as_mut().expect("set above");
+                pose.resize(skeleton.n_pose(), 0.0);
+                markers.resize(3 * skeleton.n_markers(), 0.0);
                 map.to_pose_into(z, pose, None);
                 skeleton.forward_flat_into(
                     &pose[..3],
@@ -283,9 +321,9 @@ pub fn emission_batch_into(
                     None,
                     markers,
                 );
-                project_all(&projs, markers, o);
-            },
-        );
+                project_all(projs, markers, o);
+            })
+        });
     Ok(())
 }
 

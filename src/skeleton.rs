@@ -63,6 +63,15 @@ pub struct FkWorkspace {
     joints: Vec<Vector3<f64>>,
 }
 
+impl FkWorkspace {
+    /// Whether this workspace has the sizes of `skeleton`'s ([`Skeleton::workspace`]).
+    pub fn fits(&self, skeleton: &Skeleton) -> bool {
+        self.joint_rot.len() == skeleton.n_joints()
+            && self.joints.len() == skeleton.n_joints()
+            && self.bone_rot.len() == skeleton.n_bones()
+    }
+}
+
 /// Exact derivatives of joint and marker positions (rows `[joints (3J), markers (3M)]`).
 #[derive(Debug, Clone)]
 pub struct FkJacobian {

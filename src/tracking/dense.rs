@@ -1,12 +1,15 @@
 //! Small dense linear-algebra helpers for the tracker: Cholesky with a jitter fallback,
-//! symmetric rank-k products through `matrixmultiply` (AVX2/FMA kernels), triangular solves.
+//! symmetric rank-k products and triangular solves on the kernels of [`crate::kernels`]
+//! (AVX2/FMA chosen at run time; no heap memory, so a filter step allocates nothing).
 //!
 //! Matrices are flat `Vec<f64>`/slices; covariances are symmetric so row- and column-major
 //! coincide. The factorisations and triangular solves use the run-time dispatched
 //! column kernels of [`crate::kernels`] (2-4× nalgebra's generic loops at n ≈ 50-100).
 
 use crate::error::{AcmError, Result};
-use crate::kernels::{cholesky_in_place, lower_solve_in_place, lower_tr_solve_in_place};
+use crate::kernels::{
+    cholesky_in_place, lower_solve_in_place, lower_tr_solve_in_place, syrk_rows_lower,
+};
 use nalgebra::{DMatrix, DVector};
 
 /// Relative jitter levels tried when a covariance is not numerically positive definite
@@ -52,6 +55,44 @@ pub fn cholesky(a: &[f64], n: usize, what: &dyn Fn() -> String) -> Result<DMatri
     )))
 }
 
+/// [`cholesky`] into a caller buffer (`n × n`, column-major), without allocating unless the
+/// plain factorisation fails (then the jitter path of [`cholesky`]).
+///
+/// # Errors
+/// As [`cholesky`].
+pub fn cholesky_into(
+    a: &[f64],
+    n: usize,
+    out: &mut [f64],
+    what: &dyn Fn() -> String,
+) -> Result<()> {
+    if a.iter().any(|v| !v.is_finite()) {
+        return Err(AcmError::Numerical(format!(
+            "{} contains NaN or infinity",
+            what()
+        )));
+    }
+    out.copy_from_slice(a);
+    symmetrize_slice(out, n);
+    if cholesky_in_place(out, n) {
+        return Ok(());
+    }
+    let l = cholesky(a, n, what)?;
+    out.copy_from_slice(l.as_slice());
+    Ok(())
+}
+
+/// `m ← (m + mᵀ) / 2` for a column-major `n × n` slice.
+pub fn symmetrize_slice(m: &mut [f64], n: usize) {
+    for i in 0..n {
+        for j in 0..i {
+            let v = 0.5 * (m[j * n + i] + m[i * n + j]);
+            m[j * n + i] = v;
+            m[i * n + j] = v;
+        }
+    }
+}
+
 /// `m ← (m + mᵀ) / 2`.
 pub fn symmetrize(m: &mut DMatrix<f64>) {
     let n = m.nrows();
@@ -84,79 +125,81 @@ pub fn lower_solve_mat(l: &DMatrix<f64>, b: &mut DMatrix<f64>) {
 }
 
 /// `c ← c + a aᵀ` for `a` stored row-major as `rows × k` (each row one vector), `c` the
-/// `rows × rows` column-major result. Uses the `matrixmultiply` kernels; the two column
-/// halves of `c` are computed in parallel.
+/// `rows × rows` column-major result (exactly symmetric). The lower triangle by the
+/// allocation-free kernel of [`crate::kernels::syrk_rows_lower`], split between two threads
+/// by columns (equal shares of the triangle) when large, then mirrored.
 pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64]) {
     debug_assert_eq!(a.len(), rows * k);
     debug_assert_eq!(c.len(), rows * rows);
     if rows == 0 || k == 0 {
         return;
     }
-    let half = rows / 2;
-    let (c0, c1) = c.split_at_mut(half * rows);
-    let gemm = |cols: usize, col0: usize, out: &mut [f64]| {
-        if cols == 0 {
-            return;
-        }
-        // C[:, col0..col0+cols] += A · A[col0..col0+cols, :]ᵀ with A row-major (rs = k,
-        // cs = 1); Aᵀ's block has rs = 1, cs = k; C column-major (rs = 1, cs = rows).
-        // SAFETY: the pointers and strides describe in-bounds views of `a` and `out`
-        // (`out` holds exactly `cols` columns of `rows` entries).
-        unsafe {
-            matrixmultiply::dgemm(
-                rows,
-                k,
-                cols,
-                1.0,
-                a.as_ptr(),
-                k as isize,
-                1,
-                a.as_ptr().add(col0 * k),
-                1,
-                k as isize,
-                1.0,
-                out.as_mut_ptr(),
-                1,
-                rows as isize,
-            );
-        }
-    };
+    // column j holds rows − j entries of the triangle: split where the shares are equal
+    let split = ((rows as f64) * (1.0 - std::f64::consts::FRAC_1_SQRT_2)).round() as usize;
+    let split = split.clamp(1, rows) & !1; // even, so the 2-column blocks stay aligned
+    let (c0, c1) = c.split_at_mut(split * rows);
     if rows * rows * k > 200_000 {
-        rayon::join(|| gemm(half, 0, c0), || gemm(rows - half, half, c1));
+        rayon::join(
+            || syrk_rows_lower(a, rows, k, 0..split, c0),
+            || syrk_rows_lower(a, rows, k, split..rows, c1),
+        );
     } else {
-        gemm(half, 0, c0);
-        gemm(rows - half, half, c1);
+        syrk_rows_lower(a, rows, k, 0..split, c0);
+        syrk_rows_lower(a, rows, k, split..rows, c1);
+    }
+    mirror_lower(c, rows);
+}
+
+/// Copies the lower triangle of the column-major `n × n` slice onto its upper triangle.
+fn mirror_lower(c: &mut [f64], n: usize) {
+    for j in 0..n {
+        for i in j + 1..n {
+            c[i * n + j] = c[j * n + i];
+        }
     }
 }
 
-/// `Aᵀ A` for a column-major `a` (`rows × cols`), through the `matrixmultiply` kernels.
+/// `Aᵀ A` for a column-major `a` (`rows × cols`).
 pub fn at_a(a: &DMatrix<f64>) -> DMatrix<f64> {
     let (rows, cols) = a.shape();
     let mut c = DMatrix::zeros(cols, cols);
-    if rows == 0 || cols == 0 {
-        return c;
-    }
-    // SAFETY: Aᵀ is read with (rs = rows, cs = 1), A with (rs = 1, cs = rows): both in-bounds
-    // views of `a`'s column-major storage; C is `cols × cols` column-major.
-    unsafe {
-        matrixmultiply::dgemm(
-            cols,
-            rows,
-            cols,
-            1.0,
-            a.as_ptr(),
-            rows as isize,
-            1,
-            a.as_ptr(),
-            1,
-            rows as isize,
-            0.0,
-            c.as_mut_ptr(),
-            1,
-            cols as isize,
-        );
-    }
+    at_a_into(a.as_slice(), rows, cols, c.as_mut_slice());
     c
+}
+
+/// `out ← Aᵀ A` for a column-major `a` (`rows × cols`) into the `cols × cols` `out`
+/// (exactly symmetric; allocation-free: column `i` of `A` is row `i` of `Aᵀ`).
+pub fn at_a_into(a: &[f64], rows: usize, cols: usize, out: &mut [f64]) {
+    debug_assert!(a.len() >= rows * cols && out.len() >= cols * cols);
+    out[..cols * cols].iter_mut().for_each(|v| *v = 0.0);
+    if rows == 0 || cols == 0 {
+        return;
+    }
+    syrk_rows_lower(
+        &a[..rows * cols],
+        cols,
+        rows,
+        0..cols,
+        &mut out[..cols * cols],
+    );
+    mirror_lower(out, cols);
+}
+
+/// `out ← out + A Aᵀ` for a column-major `a` (`rows × cols`) and the `rows × rows`
+/// `out` (by rank-1 updates of the lower triangle, then mirrored; allocation-free).
+pub fn add_a_at(a: &[f64], rows: usize, cols: usize, out: &mut [f64]) {
+    debug_assert!(a.len() >= rows * cols && out.len() >= rows * rows);
+    for col in a[..rows * cols].chunks_exact(rows) {
+        for j in 0..rows {
+            let f = col[j];
+            if f != 0.0 {
+                for (o, x) in out[j * rows + j..(j + 1) * rows].iter_mut().zip(&col[j..]) {
+                    *o += f * x;
+                }
+            }
+        }
+    }
+    mirror_lower(out, rows);
 }
 
 #[cfg(test)]

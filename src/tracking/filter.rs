@@ -20,11 +20,11 @@
 //! is dominated by the Gram matrix `ỸᵀỸ` (`(2n)² n_p` multiply-adds) and the emission of `2n`
 //! sigma points.
 
-use super::dense::{add_gram_rows, cholesky, symmetrize};
+use super::dense::{add_a_at, add_gram_rows, at_a_into, cholesky, cholesky_into, symmetrize_slice};
 use super::model::Emission;
 use super::Params;
 use crate::error::Result;
-use crate::kernels::{cholesky_in_place, lower_solve_in_place};
+use crate::kernels::{cholesky_in_place, dot, lower_solve_in_place, lower_tr_solve_in_place};
 use nalgebra::{DMatrix, DVector};
 
 /// Status of one measurement entry in one frame, as used by the last E-step.
@@ -58,7 +58,8 @@ pub struct FilterStats {
     pub relinearized_frames: usize,
 }
 
-/// Scratch buffers of the filter (allocated once per pass).
+/// Scratch buffers of the filter. Sized on the first frame; a frame whose update holds
+/// without relinearisation allocates nothing afterwards (the online filter's promise).
 #[derive(Debug)]
 pub(crate) struct Workspace {
     sigma: Vec<f64>,
@@ -66,7 +67,26 @@ pub(crate) struct Workspace {
     xbar: Vec<f64>,
     used: Vec<usize>,
     ytil: Vec<f64>,
+    /// `M = I + ỸỸᵀ`, factorised in place.
     gram: Vec<f64>,
+    /// The prediction `(m̄, P)` and the Cholesky factor `L̃` of `P` (`ns`, `ns × ns`).
+    mbar: Vec<f64>,
+    p: Vec<f64>,
+    lfull: Vec<f64>,
+    vx_eff: Vec<f64>,
+    scale: Vec<f64>,
+    nu: Vec<f64>,
+    xhat: Vec<f64>,
+    gx: Vec<f64>,
+    /// The gate's blocks of `S`, rejected blocks, one block and its whitened innovation.
+    gate_acc: Vec<f64>,
+    rejected: Vec<usize>,
+    sb: Vec<f64>,
+    sbw: Vec<f64>,
+    /// `U = L_M⁻¹ [Wᵀ; 0]` (`2n × ns`) and `Ỹν̃` (`2n`) of [`linear_update`].
+    u: Vec<f64>,
+    b: Vec<f64>,
+    up: Update,
 }
 
 impl Workspace {
@@ -78,6 +98,21 @@ impl Workspace {
             used: Vec::with_capacity(n_x),
             ytil: Vec::with_capacity(2 * n * n_x),
             gram: vec![0.0; 4 * n * n],
+            mbar: Vec::new(),
+            p: Vec::new(),
+            lfull: Vec::new(),
+            vx_eff: Vec::with_capacity(n_x),
+            scale: Vec::with_capacity(n_x),
+            nu: Vec::with_capacity(n_x),
+            xhat: Vec::with_capacity(n_x),
+            gx: vec![0.0; n_x],
+            gate_acc: Vec::new(),
+            rejected: Vec::with_capacity(n_x),
+            sb: Vec::new(),
+            sbw: Vec::new(),
+            u: Vec::new(),
+            b: Vec::new(),
+            up: Update::default(),
         }
     }
 }
@@ -85,13 +120,20 @@ impl Workspace {
 /// Writes the `2n` sigma points `m ± √n L_i` (Alg. 5 without the weight-0 centre point) as
 /// rows of `out` (`2n × n`).
 pub(crate) fn sigma_points(m: &[f64], l: &DMatrix<f64>, out: &mut [f64]) {
+    sigma_points_from(m, l.as_slice(), l.nrows(), out);
+}
+
+/// [`sigma_points`] with the factor's leading `n × n` block read from the column-major
+/// slice `l` of leading dimension `ld` (e.g. the position block of the whole state's).
+fn sigma_points_from(m: &[f64], l: &[f64], ld: usize, out: &mut [f64]) {
     let n = m.len();
     let s = (n as f64).sqrt();
     for i in 0..n {
         let (plus, rest) = out[i * n..].split_at_mut(n);
         let minus = &mut rest[(n - 1) * n..n * n];
+        let col = &l[i * ld..i * ld + n];
         for r in 0..n {
-            let d = s * l[(r, i)];
+            let d = s * col[r];
             plus[r] = m[r] + d;
             minus[r] = m[r] - d;
         }
@@ -133,24 +175,25 @@ pub(crate) fn step<E: Emission + ?Sized>(
 ) -> Result<()> {
     let n = em.n_state();
     let n_x = x_t.len();
+    let ns = mu_prev.len();
     // Alg. 6 lines 2-4 (exact for the linear transition): m̄ = F μ̃_{t-1}, P = F Ṽ_{t-1} Fᵀ + V_z.
-    let (zfull, p) = predict(mu_prev, v_prev, &params.vz, n);
-    let ns = zfull.len();
+    ws.mbar.resize(ns, 0.0);
+    ws.p.resize(ns * ns, 0.0);
+    predict_into(mu_prev, v_prev, &params.vz, n, &mut ws.mbar, &mut ws.p);
     mask.fill(status::MISSING);
     if x_t.iter().all(|v| v.is_nan()) {
         // No measurement: the filtered distribution is the prediction.
-        mu_out.copy_from_slice(zfull.as_slice());
-        v_out.copy_from_slice(p.as_slice());
+        mu_out.copy_from_slice(&ws.mbar);
+        v_out.copy_from_slice(&ws.p);
         return Ok(());
     }
     // L̃ = chol(P); its leading n × n block L is the factor of the position block P_zz.
-    let l_full = cholesky(p.as_slice(), ns, &|| {
+    ws.lfull.resize(ns * ns, 0.0);
+    cholesky_into(&ws.p, ns, &mut ws.lfull, &|| {
         format!("the predicted state covariance P = F Ṽ Fᵀ + V_z of frame {frame}")
     })?;
-    let l = l_full.view((0, 0), (n, n)).into_owned();
-    let zbar = &zfull.as_slice()[..n];
     // Alg. 6 lines 5-7: sigma points of (z̄, P) through g, and their mean x̄.
-    sigma_points(zbar, &l, &mut ws.sigma);
+    sigma_points_from(&ws.mbar[..n], &ws.lfull, ns, &mut ws.sigma);
     em.eval_batch(&ws.sigma, &mut ws.x)?;
     let m2 = 2 * n;
     let inv = 1.0 / m2 as f64;
@@ -175,29 +218,14 @@ pub(crate) fn step<E: Emission + ?Sized>(
         }
     }
     // Student-t model: entry j has noise V_x,j / w_j (w = 1: the Gaussian model)
-    let vx_eff: Vec<f64> = params.vx.iter().zip(weights).map(|(v, w)| v / w).collect();
+    ws.vx_eff.clear();
+    ws.vx_eff
+        .extend(params.vx.iter().zip(weights).map(|(v, w)| v / w));
     if let Some(g) = gate {
-        apply_gate(em.block(), g, ws, x_t, &vx_eff, mask, stats);
+        apply_gate(em.block(), g, ws, x_t, mask, stats);
     }
     ws.used
         .extend((0..n_x).filter(|&j| mask[j] == status::USED));
-    // the update linearised about the hint, where the prior is too broad (two places below)
-    let hinted =
-        |h: (&[f64], &[f64]), mask: &mut [u8], stats: &mut FilterStats, ws: &mut Workspace| {
-            let prior = (zfull.as_slice(), &l_full);
-            hinted_update(
-                em,
-                prior,
-                x_t,
-                &vx_eff,
-                h,
-                relinearize,
-                frame,
-                mask,
-                stats,
-                ws,
-            )
-        };
     if let Some((hm, hv)) = hint {
         let invisible = mask.iter().filter(|&&m| m == status::INVISIBLE).count();
         let measured = ws.used.len() + invisible;
@@ -205,8 +233,8 @@ pub(crate) fn step<E: Emission + ?Sized>(
         // (the other sign of a broad prior, a first update that does not hold, is tested
         // below once that update exists)
         if broad {
-            if let Some(up) = hinted((hm, hv), mask, stats, ws)? {
-                finish(&up, &ws.used, &vx_eff, stats, mu_out, v_out);
+            if let Some(up) = hinted(em, x_t, (hm, hv), relinearize, frame, mask, stats, ws)? {
+                finish(&up, &ws.used, &ws.vx_eff, stats, mu_out, v_out);
                 return Ok(());
             }
         }
@@ -214,18 +242,23 @@ pub(crate) fn step<E: Emission + ?Sized>(
     let np = ws.used.len();
     stats.used += np;
     if np == 0 {
-        mu_out.copy_from_slice(zfull.as_slice());
-        v_out.copy_from_slice(p.as_slice());
+        mu_out.copy_from_slice(&ws.mbar);
+        v_out.copy_from_slice(&ws.p);
         return Ok(());
     }
     // Whitened deviations Ỹ (2n × n_p, row = sigma point) and innovation ν̃.
     ws.ytil.clear();
     ws.ytil.resize(m2 * np, 0.0);
-    let mut nu = DVector::zeros(np);
-    let scale: Vec<f64> = ws.used.iter().map(|&j| 1.0 / vx_eff[j].sqrt()).collect();
-    for (q, &j) in ws.used.iter().enumerate() {
-        nu[q] = (x_t[j] - ws.xbar[j]) * scale[q];
-    }
+    ws.scale.clear();
+    ws.scale
+        .extend(ws.used.iter().map(|&j| 1.0 / ws.vx_eff[j].sqrt()));
+    ws.nu.clear();
+    ws.nu.extend(
+        ws.used
+            .iter()
+            .zip(&ws.scale)
+            .map(|(&j, sc)| (x_t[j] - ws.xbar[j]) * sc),
+    );
     // Rows i and n + i (the sigma points z̄ ± √n L_i) become their scaled difference and sum:
     // D = (Y₊ − Y₋)/√2 (the linear part, `C = L Dᵀ`) and E = (Y₊ + Y₋)/√2 (what no linear
     // map explains). An orthogonal change of the 2n columns: `ỸỸᵀ` and the update are
@@ -238,52 +271,92 @@ pub(crate) fn step<E: Emission + ?Sized>(
         let xm = &ws.x[(n + i) * n_x..(n + i + 1) * n_x];
         for (q, &j) in ws.used.iter().enumerate() {
             let (a, b) = (xp[j] - ws.xbar[j], xm[j] - ws.xbar[j]);
-            dst_d[q] = (a - b) * scale[q] * sq;
-            dst_e[q] = (a + b) * scale[q] * sq;
+            dst_d[q] = (a - b) * ws.scale[q] * sq;
+            dst_e[q] = (a + b) * ws.scale[q] * sq;
         }
     }
-    let mut up = linear_update(
-        zfull.as_slice(),
-        &l_full,
+    linear_update(
+        &ws.mbar,
+        &ws.lfull,
         n,
         &ws.ytil,
-        &nu,
+        &ws.nu,
         &mut ws.gram,
+        &mut ws.u,
+        &mut ws.b,
         frame,
+        &mut ws.up,
     )?;
     if relinearize > 0 {
         // the whitened prediction of the linear model at z̄: x̄ (first pass)
-        let xhat: Vec<f64> = ws.used.iter().map(|&j| ws.xbar[j]).collect();
-        if let Some((hm, hv)) = hint {
-            let mut gx = vec![0.0; n_x];
-            let err = linearisation_error(em, &up, &xhat, &vx_eff, &mut gx, ws)?;
-            if err.is_nan() || err > RELIN_THRESHOLD {
+        ws.xhat.clear();
+        ws.xhat.extend(ws.used.iter().map(|&j| ws.xbar[j]));
+        let lin = (ws.ytil.as_slice(), ws.used.as_slice());
+        let err = linearisation_error(em, &ws.up, &ws.xhat, &ws.vx_eff, &mut ws.gx, lin)?;
+        // (the usual case: the first update holds; the rest allocates and is rare)
+        if err.is_nan() || err > RELIN_THRESHOLD {
+            if let Some((hm, hv)) = hint {
                 stats.used -= np;
-                if let Some(better) = hinted((hm, hv), mask, stats, ws)? {
-                    finish(&better, &ws.used, &vx_eff, stats, mu_out, v_out);
+                if let Some(better) =
+                    hinted(em, x_t, (hm, hv), relinearize, frame, mask, stats, ws)?
+                {
+                    finish(&better, &ws.used, &ws.vx_eff, stats, mu_out, v_out);
                     return Ok(());
                 }
                 stats.used += np;
             }
-        }
-        if let Some(better) = relinearized(
-            em,
-            zfull.as_slice(),
-            &l_full,
-            x_t,
-            &vx_eff,
-            xhat,
-            &up,
-            relinearize,
-            frame,
-            ws,
-        )? {
-            up = better;
-            stats.relinearized_frames += 1;
+            let mbar = ws.mbar.clone();
+            let l_full = DMatrix::from_column_slice(ns, ns, &ws.lfull);
+            let (first, xhat, vx_eff) = (ws.up.clone(), ws.xhat.clone(), ws.vx_eff.clone());
+            if let Some(better) = relinearized(
+                em,
+                &mbar,
+                &l_full,
+                x_t,
+                &vx_eff,
+                xhat,
+                &first,
+                relinearize,
+                frame,
+                ws,
+            )? {
+                ws.up = better;
+                stats.relinearized_frames += 1;
+            }
         }
     }
-    finish(&up, &ws.used, &vx_eff, stats, mu_out, v_out);
+    finish(&ws.up, &ws.used, &ws.vx_eff, stats, mu_out, v_out);
     Ok(())
+}
+
+/// [`hinted_update`] with the prior of this frame from the workspace (a rare path: copies).
+#[allow(clippy::too_many_arguments)]
+fn hinted<E: Emission + ?Sized>(
+    em: &E,
+    x_t: &[f64],
+    h: (&[f64], &[f64]),
+    relinearize: usize,
+    frame: usize,
+    mask: &mut [u8],
+    stats: &mut FilterStats,
+    ws: &mut Workspace,
+) -> Result<Option<Update>> {
+    let ns = ws.mbar.len();
+    let mbar = ws.mbar.clone();
+    let l_full = DMatrix::from_column_slice(ns, ns, &ws.lfull);
+    let vx_eff = ws.vx_eff.clone();
+    hinted_update(
+        em,
+        (&mbar, &l_full),
+        x_t,
+        &vx_eff,
+        h,
+        relinearize,
+        frame,
+        mask,
+        stats,
+        ws,
+    )
 }
 
 /// Writes an update's moments and adds its `ln N(x; x̂, S)` to the stats (`linear_update`
@@ -298,8 +371,8 @@ fn finish(
 ) {
     let log_det_vx: f64 = used.iter().map(|&j| vx_eff[j].ln()).sum();
     stats.log_lik += up.log_lik - 0.5 * log_det_vx;
-    mu_out.copy_from_slice(up.mu.as_slice());
-    v_out.copy_from_slice(up.v.as_slice());
+    mu_out.copy_from_slice(&up.mu);
+    v_out.copy_from_slice(&up.v);
 }
 
 /// The update of a frame whose prior `(m̄, L̃)` is too broad for the unscented transform (e.g. after a
@@ -339,7 +412,19 @@ fn hinted_update<E: Emission + ?Sized>(
         ws.used = before;
         return Ok(None);
     };
-    let first = linear_update(mbar, l_full, n, &ws.ytil, &nu, &mut ws.gram, frame)?;
+    let mut first = Update::default();
+    linear_update(
+        mbar,
+        l_full.as_slice(),
+        n,
+        &ws.ytil,
+        nu.as_slice(),
+        &mut ws.gram,
+        &mut ws.u,
+        &mut ws.b,
+        frame,
+        &mut first,
+    )?;
     let up = relinearized(
         em,
         mbar,
@@ -369,11 +454,13 @@ fn hinted_update<E: Emission + ?Sized>(
 }
 
 /// The result of one linear(ised) Kalman update.
+#[derive(Debug, Clone, Default)]
 struct Update {
-    mu: DVector<f64>,
-    v: DMatrix<f64>,
+    /// Posterior mean (`ns`) and covariance (`ns × ns`, column-major).
+    mu: Vec<f64>,
+    v: Vec<f64>,
     /// `s = M⁻¹ Ỹ ν̃`, whose first `n` entries are the update in the coordinates of `L`.
-    s: DVector<f64>,
+    s: Vec<f64>,
     log_lik: f64,
 }
 
@@ -385,48 +472,76 @@ struct Update {
 /// `Ṽ = P − W (I − M⁻¹) Wᵀ = Uᵀ U + L̃[:, n:] L̃[:, n:]ᵀ` with `U = L_M⁻¹ [Wᵀ; 0]`
 /// (push-through form of Alg. 6 lines 19-26), and `ln N(x; x̂, S)` from `|S| = |V_x| |M|`
 /// and `ν̃ᵀν̃ − (Ỹν̃)ᵀ s` (without the `|V_x|` term, which the caller adds).
+///
+/// `l_full` is `L̃` (column-major `ns × ns`); `gram`, `u`, `b` are scratch (`gram` ends
+/// as the factor of `M`); the result goes to `out`, whose buffers are reused.
+#[allow(clippy::too_many_arguments)]
 fn linear_update(
     mbar: &[f64],
-    l_full: &DMatrix<f64>,
+    l_full: &[f64],
     n: usize,
     ytil: &[f64],
-    nu: &DVector<f64>,
-    gram: &mut [f64],
+    nu: &[f64],
+    gram: &mut Vec<f64>,
+    u: &mut Vec<f64>,
+    b: &mut Vec<f64>,
     frame: usize,
-) -> Result<Update> {
+    out: &mut Update,
+) -> Result<()> {
     let ns = mbar.len();
     let m2 = 2 * n;
     let np = nu.len();
-    // M = I + Ỹ Ỹᵀ (the dominant product).
-    gram.fill(0.0);
+    // M = I + Ỹ Ỹᵀ (the dominant product), factorised in place.
+    gram.clear();
+    gram.resize(m2 * m2, 0.0);
     for i in 0..m2 {
         gram[i * m2 + i] = 1.0;
     }
     add_gram_rows(ytil, m2, np, gram);
-    let lm = cholesky(gram, m2, &|| format!("I + ỸᵀỸ of frame {frame}"))?;
-    let mut s = DVector::zeros(m2);
-    for i in 0..m2 {
-        let row = &ytil[i * np..(i + 1) * np];
-        s[i] = row.iter().zip(nu.iter()).map(|(a, b)| a * b).sum();
+    symmetrize_slice(gram, m2);
+    if !cholesky_in_place(gram, m2) {
+        // (never seen: M ⪰ I; the allocating path with its jitter and error message)
+        let lm = cholesky(&gram.clone(), m2, &|| format!("I + ỸᵀỸ of frame {frame}"))?;
+        gram.copy_from_slice(lm.as_slice());
     }
-    let b = s.clone();
-    super::dense::chol_solve_vec(&lm, &mut s);
-    let log_det_m = 2.0 * (0..m2).map(|i| lm[(i, i)].ln()).sum::<f64>();
-    let maha = nu.norm_squared() - b.dot(&s);
-    let log_lik = -0.5 * (np as f64 * (2.0 * std::f64::consts::PI).ln() + log_det_m + maha);
-    let w = l_full.columns(0, n);
-    let upd = w * s.rows(0, n);
-    let mu = DVector::from_fn(ns, |r, _| mbar[r] + upd[r]);
-    let mut u = DMatrix::zeros(m2, ns);
-    u.rows_mut(0, n).copy_from(&w.transpose());
-    super::dense::lower_solve_mat(&lm, &mut u);
-    let mut v = super::dense::at_a(&u);
+    let lm: &[f64] = gram;
+    out.s.clear();
+    out.s
+        .extend((0..m2).map(|i| dot(&ytil[i * np..(i + 1) * np], nu)));
+    b.clear();
+    b.extend_from_slice(&out.s);
+    lower_solve_in_place(lm, m2, &mut out.s);
+    lower_tr_solve_in_place(lm, m2, &mut out.s);
+    let log_det_m = 2.0 * (0..m2).map(|i| lm[i * m2 + i].ln()).sum::<f64>();
+    let maha = dot(nu, nu) - dot(b, &out.s);
+    out.log_lik = -0.5 * (np as f64 * (2.0 * std::f64::consts::PI).ln() + log_det_m + maha);
+    // μ = m̄ + W s[..n], W = L̃[:, :n]
+    out.mu.clear();
+    out.mu.extend_from_slice(mbar);
+    for c in 0..n {
+        let sc = out.s[c];
+        for (m, l) in out.mu.iter_mut().zip(&l_full[c * ns..(c + 1) * ns]) {
+            *m += l * sc;
+        }
+    }
+    // U = L_M⁻¹ [Wᵀ; 0] (2n × ns): column r holds row r of W, then zeros.
+    u.clear();
+    u.resize(m2 * ns, 0.0);
+    for r in 0..ns {
+        for c in 0..n {
+            u[r * m2 + c] = l_full[c * ns + r];
+        }
+    }
+    lower_solve_in_place(lm, m2, u);
+    out.v.clear();
+    out.v.resize(ns * ns, 0.0);
+    at_a_into(u, m2, ns, &mut out.v);
     if ns > n {
-        let rest = l_full.columns(n, ns - n);
-        v += rest * rest.transpose();
+        // + L̃[:, n:] L̃[:, n:]ᵀ
+        add_a_at(&l_full[n * ns..], ns, ns - n, &mut out.v);
     }
-    symmetrize(&mut v);
-    Ok(Update { mu, v, s, log_lik })
+    symmetrize_slice(&mut out.v, ns);
+    Ok(())
 }
 
 /// The prediction of Alg. 6 lines 2-4 for the linear transition `F` of the state's order
@@ -440,17 +555,46 @@ pub(crate) fn predict(
     n: usize,
 ) -> (DVector<f64>, DMatrix<f64>) {
     let ns = mu_prev.len();
-    let mut m = DVector::from_column_slice(mu_prev);
-    let v = DMatrix::from_column_slice(ns, ns, v_prev);
-    let mut p = f_left(&f_right(&v, n), n);
+    let (mut m, mut p) = (vec![0.0; ns], vec![0.0; ns * ns]);
+    predict_into(mu_prev, v_prev, vz, n, &mut m, &mut p);
+    (DVector::from_vec(m), DMatrix::from_vec(ns, ns, p))
+}
+
+/// [`predict`] into caller buffers (`ns`, `ns × ns`), without allocating.
+pub(crate) fn predict_into(
+    mu_prev: &[f64],
+    v_prev: &[f64],
+    vz: &[f64],
+    n: usize,
+    m: &mut [f64],
+    p: &mut [f64],
+) {
+    let ns = mu_prev.len();
+    m.copy_from_slice(mu_prev);
+    p.copy_from_slice(v_prev);
     if ns > n {
         for r in 0..n {
             m[r] += mu_prev[n + r];
         }
+        // Ṽ Fᵀ: the position columns gain the velocity columns (still unchanged) ...
+        for c in 0..n {
+            let (head, tail) = p.split_at_mut((n + c) * ns);
+            for (x, y) in head[c * ns..(c + 1) * ns].iter_mut().zip(&tail[..ns]) {
+                *x += y;
+            }
+        }
+        // ... then F (Ṽ Fᵀ): the position rows gain the velocity rows.
+        for col in p.chunks_exact_mut(ns) {
+            let (head, tail) = col.split_at_mut(n);
+            for (x, y) in head.iter_mut().zip(&tail[..n]) {
+                *x += y;
+            }
+        }
     }
-    p += DMatrix::from_column_slice(ns, ns, vz);
-    symmetrize(&mut p);
-    (m, p)
+    for (x, y) in p.iter_mut().zip(vz) {
+        *x += y;
+    }
+    symmetrize_slice(p, ns);
 }
 
 /// `F A` for the transition of [`predict`] (`A` with `ns` rows): the position rows gain the
@@ -510,27 +654,34 @@ fn relinearized<E: Emission + ?Sized>(
     let mut best: Option<Update> = None;
     for _ in 0..max_iter {
         let cur = best.as_ref().unwrap_or(first);
-        let mean_err = linearisation_error(em, cur, &xhat, vx_eff, &mut gx, ws)?;
+        let lin = (ws.ytil.as_slice(), ws.used.as_slice());
+        let mean_err = linearisation_error(em, cur, &xhat, vx_eff, &mut gx, lin)?;
         if mean_err.is_nan() || mean_err <= RELIN_THRESHOLD {
             break; // NaN: a marker is no longer predictable; keep what we have
         }
-        let vzz = cur.v.view((0, 0), (n, n)).into_owned();
-        let mu_j = cur.mu.rows(0, n).into_owned();
+        let ns = cur.mu.len();
+        let vzz = DMatrix::from_fn(n, n, |r, c| cur.v[c * ns + r]);
+        let mu_j = DVector::from_column_slice(&cur.mu[..n]);
         let Some(nu) = linearize_about(
             em, mbar, l_full, x_t, vx_eff, &mu_j, &vzz, &mut xhat, false, ws,
         )?
         else {
             break;
         };
-        best = Some(linear_update(
+        let mut next = Update::default();
+        linear_update(
             mbar,
-            l_full,
+            l_full.as_slice(),
             n,
             &ws.ytil,
-            &nu,
+            nu.as_slice(),
             &mut ws.gram,
+            &mut ws.u,
+            &mut ws.b,
             frame,
-        )?);
+            &mut next,
+        )?;
+        best = Some(next);
     }
     Ok(best)
 }
@@ -543,14 +694,14 @@ fn linearisation_error<E: Emission + ?Sized>(
     xhat: &[f64],
     vx_eff: &[f64],
     gx: &mut [f64],
-    ws: &Workspace,
+    (ytil, used): (&[f64], &[usize]),
 ) -> Result<f64> {
     let n = em.n_state();
-    let np = ws.used.len();
-    em.eval_batch(&up.mu.as_slice()[..n], gx)?;
+    let np = used.len();
+    em.eval_batch(&up.mu[..n], gx)?;
     let mut err = 0.0;
-    for (q, &j) in ws.used.iter().enumerate() {
-        let lin: f64 = (0..n).map(|i| ws.ytil[i * np + q] * up.s[i]).sum();
+    for (q, &j) in used.iter().enumerate() {
+        let lin: f64 = (0..n).map(|i| ytil[i * np + q] * up.s[i]).sum();
         let e = (gx[j] - xhat[q]) / vx_eff[j].sqrt() - lin;
         err += e * e;
     }
@@ -652,9 +803,8 @@ fn linearize_about<E: Emission + ?Sized>(
 fn apply_gate(
     block: usize,
     gate: f64,
-    ws: &Workspace,
+    ws: &mut Workspace,
     x_t: &[f64],
-    vx: &[f64],
     mask: &mut [u8],
     stats: &mut FilterStats,
 ) {
@@ -665,7 +815,9 @@ fn apply_gate(
     let n_blocks = n_x / k;
     // Blocks of S (lower triangles, k(k+1)/2 entries each), accumulated row by row.
     let tri = k * (k + 1) / 2;
-    let mut sb_all = vec![0.0; n_blocks * tri];
+    let sb_all = &mut ws.gate_acc;
+    sb_all.clear();
+    sb_all.resize(n_blocks * tri, 0.0);
     for row in ws.x.chunks_exact(n_x) {
         for (b, acc) in sb_all.chunks_exact_mut(tri).enumerate() {
             let b0 = b * k;
@@ -679,10 +831,16 @@ fn apply_gate(
             }
         }
     }
-    let mut rejected = Vec::new();
+    let vx = &ws.vx_eff;
+    let rejected = &mut ws.rejected;
+    rejected.clear();
     let mut blocks = 0;
-    let (mut sb, mut w) = (vec![0.0; k * k], vec![0.0; k]);
-    for (b, acc) in sb_all.chunks_exact(tri).enumerate() {
+    let (sb, w) = (&mut ws.sb, &mut ws.sbw);
+    sb.clear();
+    sb.resize(k * k, 0.0);
+    w.clear();
+    w.resize(k, 0.0);
+    for (b, acc) in ws.gate_acc.chunks_exact(tri).enumerate() {
         let b0 = b * k;
         if (b0..b0 + k).any(|j| mask[j] != status::USED) {
             continue;
@@ -701,8 +859,8 @@ fn apply_gate(
             *wa = x_t[b0 + a] - ws.xbar[b0 + a];
         }
         // νᵀ S_b⁻¹ ν = |L⁻¹ ν|² (a block whose S_b is not positive definite is not gated)
-        let d2 = if cholesky_in_place(&mut sb, k) {
-            lower_solve_in_place(&sb, k, &mut w);
+        let d2 = if cholesky_in_place(sb, k) {
+            lower_solve_in_place(sb, k, w);
             w.iter().map(|v| v * v).sum()
         } else {
             0.0
@@ -718,7 +876,7 @@ fn apply_gate(
         stats.gate_skipped_frames += 1;
         return;
     }
-    for b0 in rejected {
+    for &b0 in rejected.iter() {
         for m in mask.iter_mut().skip(b0).take(k) {
             *m = status::GATED;
             stats.gated += 1;

@@ -41,6 +41,9 @@ pub struct OnlineTracker<E: Emission> {
     /// Frames processed so far.
     frames: usize,
     ws: Workspace,
+    /// The previous frame's filtered moments, copied out of the ring (the slot may be the
+    /// one the step writes).
+    prev: Moments,
     mask: Vec<u8>,
     weights: Vec<f64>,
     stats: FilterStats,
@@ -82,6 +85,7 @@ impl<E: Emission> OnlineTracker<E> {
             head: 0,
             frames: 0,
             ws: Workspace::new(n, n_x),
+            prev: (vec![0.0; ns], vec![0.0; ns * ns]),
             mask: vec![0; n_x],
             weights: vec![1.0; n_x],
             stats: FilterStats::default(),
@@ -127,7 +131,9 @@ impl<E: Emission> OnlineTracker<E> {
         &self.mask
     }
 
-    /// One step of Alg. 6 with the measurement `x_t` (`n_x`, NaN = missing).
+    /// One step of Alg. 6 with the measurement `x_t` (`n_x`, NaN = missing). Once the first
+    /// frame has sized the buffers, a step whose update holds without relinearisation
+    /// allocates nothing (`tests/no_alloc.rs`).
     ///
     /// # Errors
     /// Shape error; ±inf; numerical errors of the step (the state is then unchanged).
@@ -145,14 +151,15 @@ impl<E: Emission> OnlineTracker<E> {
         } else {
             (self.head + 1) % (self.lag + 1)
         };
-        let (mu_prev, v_prev) = (self.means[prev].clone(), self.covs[prev].clone());
+        self.prev.0.copy_from_slice(&self.means[prev]);
+        self.prev.1.copy_from_slice(&self.covs[prev]);
         let (mu_out, v_out) = (&mut self.means[next], &mut self.covs[next]);
         let mut stats = self.stats;
         filter::step(
             &self.em,
             &self.params,
-            &mu_prev,
-            &v_prev,
+            &self.prev.0,
+            &self.prev.1,
             x_t,
             self.gate,
             self.relinearize,

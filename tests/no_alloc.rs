@@ -1,0 +1,143 @@
+//! The online filter's promise (issue 16): once the first frames have sized its buffers, a
+//! step of `OnlineTracker::update` allocates nothing — on any thread (the sigma points are
+//! evaluated by rayon's workers), with the innovation gate and relinearisation checks on,
+//! missing detections and a confident outlier. Counted by a global allocator that this test
+//! binary alone installs.
+
+use acm_rs::camera::Camera;
+use acm_rs::limits::StateMap;
+use acm_rs::normalization::Normalization;
+use acm_rs::skeleton::Skeleton;
+use acm_rs::tracking::online::OnlineTracker;
+use acm_rs::tracking::{Emission, Params, SkeletonEmission};
+use nalgebra::Vector3;
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+struct Counting;
+static COUNTING: AtomicBool = AtomicBool::new(false);
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+// SAFETY: forwards to the system allocator; only counts.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+/// A 9-joint chain with a side branch, one marker per joint, bounded joint angles, and four
+/// cameras around it (units: cm).
+fn model() -> SkeletonEmission {
+    let parents = [-1i64, 0, 1, 2, 3, 4, 2, 6, 7];
+    let rest: Vec<Vector3<f64>> = (0..9)
+        .map(|j| match j {
+            0..=5 => Vector3::new(0.0, 0.0, 2.0 * j as f64),
+            _ => Vector3::new(1.5 * (j - 5) as f64, 0.0, 4.0),
+        })
+        .collect();
+    let markers: Vec<Vector3<f64>> = rest
+        .iter()
+        .map(|p| p + Vector3::new(0.2, 0.3, 0.1))
+        .collect();
+    let sk = Skeleton::from_rest_pose(
+        &parents,
+        &rest,
+        (0..9).collect(),
+        &markers,
+        &Vector3::y(),
+        None,
+    )
+    .unwrap();
+    let nb = sk.n_bones();
+    let norm = Normalization::default();
+    let (lo, hi): (Vec<f64>, Vec<f64>) = (0..3 * nb)
+        .map(|e| if e % 3 == 2 { (0.0, 0.0) } else { (-1.2, 1.2) })
+        .unzip();
+    let map = StateMap::new(nb, &lo, &hi, &norm, true).unwrap();
+    let cams: Vec<f64> = (0..4)
+        .flat_map(|i| {
+            let a = -0.45 + 0.3 * i as f64;
+            [
+                0.0, a, 0.0, 0.0, -5.0, 60.0, 1000.0, 1000.0, 640.0, 512.0, -0.1, 0.02, 0.0, 0.0,
+                0.0,
+            ]
+        })
+        .collect();
+    SkeletonEmission::new(sk, Camera::many_from_params(&cams).unwrap(), map, norm).unwrap()
+}
+
+#[test]
+fn online_update_allocates_nothing_per_frame() {
+    let em = model();
+    let (n, n_x) = (em.n_state(), em.n_meas());
+    // a slowly moving state and its detections (with a missing point and an outlier)
+    let frames = 60;
+    let states: Vec<f64> = (0..frames)
+        .flat_map(|t| (0..n).map(move |i| 0.3 * ((0.05 * t as f64) + i as f64).sin()))
+        .collect();
+    let mut x = vec![0.0; frames * n_x];
+    em.eval_batch(&states, &mut x).unwrap();
+    let clean = x.clone();
+    for t in 0..frames {
+        x[t * n_x + 4] = f64::NAN;
+        x[t * n_x + 5] = f64::NAN;
+        if t % 7 == 3 {
+            x[t * n_x + 10] += 0.3; // ~190 px off in one camera
+        }
+    }
+    assert!(x.iter().all(|v| !v.is_infinite()));
+    let mut p = Params::initial(states[..n].to_vec(), n_x, 1e-3);
+    p.vx.iter_mut().for_each(|v| *v = 1e-5);
+    let mut tr = OnlineTracker::new(em, p, 1, Some(13.8), 10, 5).unwrap();
+    for t in 0..10 {
+        tr.update(&x[t * n_x..(t + 1) * n_x]).unwrap();
+    }
+    let before = tr.stats();
+    ALLOCATIONS.store(0, Ordering::Relaxed);
+    COUNTING.store(true, Ordering::Relaxed);
+    for t in 10..frames {
+        tr.update(&x[t * n_x..(t + 1) * n_x]).unwrap();
+    }
+    COUNTING.store(false, Ordering::Relaxed);
+    let allocations = ALLOCATIONS.load(Ordering::Relaxed);
+    let stats = tr.stats();
+    assert!(
+        stats.gated > before.gated,
+        "the gate was exercised: {stats:?}"
+    );
+    assert_eq!(
+        stats.relinearized_frames, before.relinearized_frames,
+        "the steady state: {stats:?}"
+    );
+    assert_eq!(allocations, 0, "allocations in {} steps", frames - 10);
+    // and the filter tracks: the last filtered pose reprojects onto the detections
+    let (mu, _) = tr.filtered();
+    let mut gx = vec![0.0; n_x];
+    tr.emission().eval_batch(&mu[..n], &mut gx).unwrap();
+    let last = &clean[(frames - 1) * n_x..];
+    let err = gx
+        .iter()
+        .zip(last)
+        .filter(|(_, d)| d.is_finite())
+        .map(|(g, d)| (g - d).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        err < 0.02,
+        "largest reprojection error {err} (normalised pixels)"
+    );
+}
