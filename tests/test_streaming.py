@@ -5,6 +5,8 @@ leave a partial file or a spill behind."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 from conftest import long_recording_case
@@ -157,3 +159,32 @@ def test_bad_arguments_are_refused(case, tmp_path):
     with pytest.raises(ValueError, match="Dask"):
         acm_rs.track_long(case["rig"], case["sk"], case["det"], tmp_path / "x.h5",
                           method="streaming", client="tcp://nowhere:1")  # fmt: skip
+
+
+def _mapped_kb(path) -> int:
+    """Resident kB of this process's mappings of ``path`` (Linux /proc/self/smaps)."""
+    total, inside = 0, False
+    for line in open("/proc/self/smaps"):
+        first = line.split(maxsplit=1)[0]
+        if "-" in first and not first.endswith(":"):  # a mapping's header line
+            inside = line.rstrip().endswith(str(path))
+        elif inside and first == "Rss:":
+            total += int(line.split()[1])
+    return total
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/smaps"), reason="Linux /proc needed")
+def test_memory_mapped_input_pages_are_released(tmp_path):
+    # a 40 MB memory-mapped input read window by window: the windows are right, and the
+    # pages read do not pile up in the process's resident memory
+    n = 20_000
+    det = np.lib.format.open_memmap(tmp_path / "d.npy", "w+", np.float32, (4, n, 64, 2))
+    det[:] = np.arange(n, dtype=np.float32)[None, :, None, None]
+    det.flush()
+    del det
+    src = L._Source(np.load(tmp_path / "d.npy", mmap_mode="r"), None)
+    for a in range(0, n, 1000):
+        win, _ = src.window(a, a + 1000)
+        assert win.shape == (4, 1000, 64, 2)
+        assert win[0, 0, 0, 0] == a and win[3, -1, 63, 1] == a + 999
+    assert _mapped_kb(tmp_path / "d.npy") < 4 * 1024  # of 40,960 kB read

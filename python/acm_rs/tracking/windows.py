@@ -13,6 +13,7 @@ chunked smoother of :mod:`acm_rs.tracking.long` and the streaming smoother of
 from __future__ import annotations
 
 import json
+import mmap
 import os
 import tempfile
 import warnings
@@ -184,7 +185,22 @@ class _Source:
     def window(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray | None]:
         det = np.asarray(self.det[:, a:b], dtype=np.float64)
         lik = None if self.lik is None else np.asarray(self.lik[:, a:b], dtype=np.float64)
+        for arr in (self.det, self.lik):
+            _release_pages(arr)
         return det, lik
+
+
+def _release_pages(arr) -> None:
+    """Drops the pages of a memory-mapped input from this process's resident memory once a
+    window has been copied out (``madvise(MADV_DONTNEED)``; they stay in the page cache and
+    are read back from there when needed): otherwise every page read so far counts towards
+    the process's RSS, 1.5 GB for an hour's detections and likelihoods of the rat."""
+    mm = getattr(arr, "_mmap", None)  # numpy.memmap, also np.load(..., mmap_mode="r")
+    if mm is not None and hasattr(mm, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
+        try:
+            mm.madvise(mmap.MADV_DONTNEED)
+        except (OSError, ValueError):  # closed or not supported: only memory is at stake
+            pass
 
 
 class _H5Writer:
