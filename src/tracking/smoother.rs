@@ -16,6 +16,7 @@ use super::dense::{chol_solve_mat, cholesky, symmetrize};
 use super::filter::{f_left, f_right};
 use crate::error::Result;
 use nalgebra::{DMatrix, DVector};
+use rayon::prelude::*;
 
 /// Runs Alg. 9 in place: `means`/`covs` hold the filtered `(T+1)` moments of the state of
 /// size `ns` (index 0 = the prior of `s_0`; `ns = n` for the paper's random walk, `2n` for the
@@ -47,6 +48,28 @@ pub(crate) fn smooth_in_place(
         return Ok(acc);
     }
     let vz = DMatrix::from_column_slice(ns, ns, vz);
+    smooth_pipelined(means, covs, &vz, ns, n, statistics.then_some(&mut acc))?;
+    symmetrize(&mut acc);
+    Ok(acc)
+}
+
+/// The sequential form of [`smooth_in_place`] (the reference of the pipelined one in the
+/// tests).
+#[cfg(test)]
+pub(crate) fn smooth_in_place_sequential(
+    means: &mut [f64],
+    covs: &mut [f64],
+    vz: &[f64],
+    ns: usize,
+    n: usize,
+    statistics: bool,
+) -> Result<DMatrix<f64>> {
+    let steps = means.len() / ns;
+    let mut acc = DMatrix::zeros(ns, ns);
+    if steps < 2 {
+        return Ok(acc);
+    }
+    let vz = DMatrix::from_column_slice(ns, ns, vz);
     for t in (0..steps - 1).rev() {
         let (cov_head, cov_tail) = covs.split_at_mut((t + 1) * ns * ns);
         let vf = DMatrix::from_column_slice(ns, ns, &cov_head[t * ns * ns..]);
@@ -60,17 +83,111 @@ pub(crate) fn smooth_in_place(
             cov_head[t * ns * ns..].copy_from_slice(vs.as_slice());
             continue;
         }
-        // Eq. 79 term for the pair (t+1, t).
-        let fms = f_left(&DMatrix::from_column_slice(ns, 1, ms.as_slice()), n);
-        let d = &ms_next - fms.column(0);
-        let cross = &vs_next * &gt; // Cov(s_{t+1}, s_t) = V̂_{t+1} G_tᵀ
-        let cf = f_right(&cross, n);
-        acc += &d * d.transpose() + &vs_next - &cf - cf.transpose() + f_left(&f_right(&vs, n), n);
+        add_statistic(&mut acc, &ms, &vs, &ms_next, &vs_next, &gt, n);
         mean_head[t * ns..].copy_from_slice(ms.as_slice());
         cov_head[t * ns * ns..].copy_from_slice(vs.as_slice());
     }
     symmetrize(&mut acc);
     Ok(acc)
+}
+
+/// Adds eq. 79's term of the pair `(t+1, t)` to `acc`.
+fn add_statistic(
+    acc: &mut DMatrix<f64>,
+    ms: &DVector<f64>,
+    vs: &DMatrix<f64>,
+    ms_next: &DVector<f64>,
+    vs_next: &DMatrix<f64>,
+    gt: &DMatrix<f64>,
+    n: usize,
+) {
+    let ns = ms.len();
+    let fms = f_left(&DMatrix::from_column_slice(ns, 1, ms.as_slice()), n);
+    let d = ms_next - fms.column(0);
+    let cross = vs_next * gt; // Cov(s_{t+1}, s_t) = V̂_{t+1} G_tᵀ
+    let cf = f_right(&cross, n);
+    *acc += &d * d.transpose() + vs_next - &cf - cf.transpose() + f_left(&f_right(vs, n), n);
+}
+
+/// Frames per block of [`smooth_pipelined`].
+const GAIN_BLOCK: usize = 32;
+
+/// Alg. 9 (with eq. 79's statistic added to `acc` if given), the gains computed ahead: a frame's gain (line 4, the
+/// Cholesky factorisation and solve, ~40 % of a step) depends on its filtered covariance only,
+/// so while one thread applies the gains of a block of frames backwards (lines 5-8, the
+/// sequential part), the other threads compute the gains of the block before it. The same
+/// functions in the same order per frame as [`rts_step`]: the same numbers bit for bit.
+fn smooth_pipelined(
+    means: &mut [f64],
+    covs: &mut [f64],
+    vz: &DMatrix<f64>,
+    ns: usize,
+    n: usize,
+    mut acc: Option<&mut DMatrix<f64>>,
+) -> Result<()> {
+    type Gains = Vec<(DMatrix<f64>, DMatrix<f64>)>;
+    let steps = means.len() / ns;
+    let nn = ns * ns;
+    let gains = |lo: usize, hi: usize, covs: &[f64]| -> Result<Gains> {
+        (lo..hi)
+            .into_par_iter()
+            .map(|t| {
+                let vf = DMatrix::from_column_slice(ns, ns, &covs[t * nn..(t + 1) * nn]);
+                rts_gain(&vf, vz, n, t)
+            })
+            .collect()
+    };
+    // frames lo..hi of `means`/`covs` backwards, given the smoothed frame hi (and eq. 79's
+    // statistic, as in the sequential form)
+    let apply = |lo: usize,
+                 hi: usize,
+                 g: &Gains,
+                 means: &mut [f64],
+                 covs: &mut [f64],
+                 mut acc: Option<&mut DMatrix<f64>>| {
+        for t in (lo..hi).rev() {
+            let (gt, p) = &g[t - lo];
+            let (cov_head, cov_tail) = covs.split_at_mut((t + 1 - lo) * nn);
+            let vf = DMatrix::from_column_slice(ns, ns, &cov_head[(t - lo) * nn..]);
+            let vs_next = DMatrix::from_column_slice(ns, ns, &cov_tail[..nn]);
+            let (mean_head, mean_tail) = means.split_at_mut((t + 1 - lo) * ns);
+            let mf = DVector::from_column_slice(&mean_head[(t - lo) * ns..]);
+            let ms_next = DVector::from_column_slice(&mean_tail[..ns]);
+            let (ms, vs) = rts_apply(&mf, &vf, gt, p, &ms_next, Some(&vs_next), n);
+            let vs = vs.expect("asked for");
+            if let Some(acc) = acc.as_deref_mut() {
+                add_statistic(acc, &ms, &vs, &ms_next, &vs_next, gt, n);
+            }
+            mean_head[(t - lo) * ns..].copy_from_slice(ms.as_slice());
+            cov_head[(t - lo) * nn..].copy_from_slice(vs.as_slice());
+        }
+    };
+    let mut hi = steps - 1;
+    let mut lo = hi.saturating_sub(GAIN_BLOCK);
+    let mut current = gains(lo, hi, covs)?;
+    loop {
+        let next_lo = lo.saturating_sub(GAIN_BLOCK);
+        let (head_m, tail_m) = means.split_at_mut(lo * ns);
+        let (head_c, tail_c) = covs.split_at_mut(lo * nn);
+        let _ = head_m;
+        let acc_here = acc.as_deref_mut();
+        let (_, next) = rayon::join(
+            || apply(lo, hi, &current, tail_m, tail_c, acc_here),
+            || {
+                if lo > 0 {
+                    gains(next_lo, lo, head_c)
+                } else {
+                    Ok(Vec::new())
+                }
+            },
+        );
+        if lo == 0 {
+            return Ok(());
+        }
+        current = next?;
+        hi = lo;
+        lo = next_lo;
+    }
 }
 
 /// One backward step of Alg. 8 (lines 3-8) for the transition of
@@ -79,6 +196,7 @@ pub(crate) fn smooth_in_place(
 ///
 /// # Errors
 /// Numerical error if `F Ṽ_t Fᵀ + V_z` is not positive definite.
+#[cfg(test)]
 pub(crate) fn rts_step(
     mf: &DVector<f64>,
     vf: &DMatrix<f64>,

@@ -683,3 +683,39 @@ fn filtered_moments_survive_a_spill() {
         assert!(c.load_filtered(&means, &packed, &bad).is_err());
     }
 }
+
+/// The smoother computes the gains of a block ahead in parallel; it must give the sequential
+/// smoother's numbers and eq. 79's statistic bit for bit (several blocks, both orders).
+#[test]
+fn pipelined_smoother_equals_the_sequential_one() {
+    let mut rng = Lcg(7);
+    for (ns, n) in [(4usize, 4usize), (6, 3)] {
+        let steps = 101;
+        let means: Vec<f64> = (0..steps * ns).map(|_| rng.next()).collect();
+        let mut covs = Vec::with_capacity(steps * ns * ns);
+        for _ in 0..steps {
+            let a: Vec<f64> = (0..ns * ns).map(|_| 0.3 * rng.next()).collect();
+            for c in 0..ns {
+                for r in 0..ns {
+                    let v: f64 = (0..ns).map(|k| a[r * ns + k] * a[c * ns + k]).sum();
+                    covs.push(v + if r == c { 0.05 } else { 0.0 });
+                }
+            }
+        }
+        let mut vz = vec![0.0; ns * ns];
+        for i in 0..ns {
+            vz[i * ns + i] = 0.01 * (1.0 + i as f64);
+        }
+        for statistics in [true, false] {
+            let (mut m1, mut c1) = (means.clone(), covs.clone());
+            let (mut m2, mut c2) = (means.clone(), covs.clone());
+            let a1 = smoother::smooth_in_place_sequential(&mut m1, &mut c1, &vz, ns, n, statistics)
+                .unwrap();
+            let a2 = smoother::smooth_in_place(&mut m2, &mut c2, &vz, ns, n, statistics).unwrap();
+            assert_eq!(m1, m2, "means, ns = {ns}");
+            assert_eq!(c1, c2, "covariances, ns = {ns}");
+            assert_eq!(a1, a2, "statistic, ns = {ns}");
+            assert_eq!(statistics, a1.iter().any(|v| *v != 0.0));
+        }
+    }
+}

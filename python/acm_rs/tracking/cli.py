@@ -136,7 +136,7 @@ def _cmd_track_long(args: argparse.Namespace) -> int:
                   + table.replace("\n", "\n  "))  # fmt: skip
         ls = read_labels(args.dlc, individual=args.individual)
         points, lik, names = ls.points, ls.likelihood, ls.bodyparts
-    method = args.method or "chunked"
+    method = args.method or ("chunked" if args.scheduler else "streaming")
     how = (
         f"the streaming smoother in segments of {args.chunk}" if method == "streaming"
         else f"chunks of {args.chunk} (+{args.burn_in} burn-in)"
@@ -346,9 +346,9 @@ def add_subcommands(sub) -> None:
     t.add_argument("--windows", type=int, default=10, help="EM windows, evenly spread (10)")
     t.add_argument(
         "--method", choices=["streaming", "chunked"],
-        help="chunked (default): overlapping windows, parallel in time, on threads or "
-        "--scheduler; streaming: the exact smoother from checkpointed filter states "
-        "(sequential forward pass)",
+        help="streaming (default without --scheduler): the exact smoother from checkpointed "
+        "filter states (sequential forward pass, restarts where the animal was lost); "
+        "chunked (default with --scheduler): overlapping windows, parallel in time",
     )  # fmt: skip
     t.add_argument("--chunk", type=int, default=2000,
                    help="frames per segment or chunk (2000)")  # fmt: skip

@@ -12,9 +12,9 @@ Two steps, each with memory that does not grow with the recording's length ``T``
    would see one bout); joining them into one sequence would make every join a jump that
    inflates ``V_z``. The motion model is chosen as in :func:`acm_rs.track`.
 
-2. **Smoothing with Θ fixed**: by default in chunks (below); ``method="streaming"`` runs the
-   exact smoother of the whole recording from checkpointed filter states instead
-   (:mod:`acm_rs.tracking.streaming`). **The chunked smoother** (:func:`smooth_chunked`): the
+2. **Smoothing with Θ fixed**: by default the exact smoother of the whole recording from
+   checkpointed filter states (:mod:`acm_rs.tracking.streaming`); with a Dask client, or
+   ``method="chunked"``, in chunks (below). **The chunked smoother** (:func:`smooth_chunked`): the
    recording is cut into cores of ``chunk`` frames; each core is filtered and smoothed (Alg. 7 +
    9) over a window extended by ``burn_in`` frames on both sides, starting from the single-frame
    fit (sec. 4.7) of the window's first frame with a broad prior. The filter forgets that start
@@ -573,7 +573,7 @@ def track_long(
     relinearize: int = 10,
     normalization: Normalization | None = None,
     vz_shrinkage: float = 0.8,
-    method: str = "chunked",
+    method: str = "auto",
     poor_fit: float | None = 4.0,
     client=None,
     workers: int = 2,
@@ -599,13 +599,15 @@ def track_long(
         DeepLabCut confidences; below ``pcutoff`` is missing.
     subset, n_windows : int
         EM runs on ``n_windows`` evenly spread windows of ``subset // n_windows`` frames.
-    method : {"chunked", "streaming"}
-        ``"chunked"`` (default): independent overlapping windows, parallel in time and on a
-        Dask cluster; they differ from the exact smoother near seams (module docstring), but
-        each window starts afresh, which on the 20,000-frame bench kept the velocity model at
-        0.46-0.49 mm where the exact smoother lost the rat's tail (5-7 mm; docs/tracking.md).
-        ``"streaming"``: the exact smoother of the whole recording, from checkpointed
-        filtered states (:mod:`acm_rs.tracking.streaming`; forward pass sequential).
+    method : {"auto", "streaming", "chunked"}
+        ``"streaming"``: the exact smoother of the whole recording, from checkpointed (and,
+        where the disk has room, spilled) filtered states, with restarts where the filter
+        lost the animal (:mod:`acm_rs.tracking.streaming`; forward pass sequential). On the
+        benches it is the more accurate and the faster one (100,000 frames, velocity:
+        0.55 mm at 880 frames/s; 720,000 frames, random walk: 1,600 frames/s).
+        ``"chunked"``: independent overlapping windows, parallel in time and on a Dask
+        cluster; they differ from the exact smoother near seams (module docstring).
+        ``"auto"`` (default): ``"chunked"`` with a Dask ``client``, else ``"streaming"``.
     chunk : int
         Frames per segment (streaming) or per core (chunked).
     poor_fit : float or None
@@ -628,8 +630,10 @@ def track_long(
         ``path``, the motion model, the EM history and timings, seam statistics.
     """
     t_start = time.perf_counter()
-    if method not in ("streaming", "chunked"):
-        raise ValueError(f"method must be 'streaming' or 'chunked', got {method!r}")
+    if method not in ("auto", "streaming", "chunked"):
+        raise ValueError(f"method must be 'auto', 'streaming' or 'chunked', got {method!r}")
+    if method == "auto":
+        method = "chunked" if client is not None else "streaming"
     if method == "streaming" and client is not None:
         raise ValueError("a Dask client runs method='chunked' (the streaming smoother's "
                          "forward pass is sequential)")  # fmt: skip
