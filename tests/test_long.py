@@ -4,6 +4,7 @@ smoother of the whole recording, Dask against threads, atomic output."""
 from __future__ import annotations
 
 import pickle
+import warnings
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ def case():
 
 
 def _smooth(case, path, **kw):
+    kw.setdefault("starts", "fresh")  # the windows from their own starts (checkpoints below)
     return L.smooth_chunked(case["model"], L._Source(case["det"], case["lik"]), path, **kw)
 
 
@@ -94,19 +96,40 @@ def test_a_short_burn_in_is_caught_and_extended(case, tmp_path):
     assert L._seam_difference(prev, 0, first, 149, (149, 150)) > 0.05
 
 
-def test_dask_cluster_gives_the_same_file(case, tmp_path):
+@pytest.mark.parametrize("starts", ["fresh", "checkpoints"])
+def test_dask_cluster_gives_the_same_file(case, tmp_path, starts):
     distributed = pytest.importorskip("distributed")
-    _smooth(case, tmp_path / "threads.h5", chunk=200, burn_in=40, tol=np.inf)
+    kw = {"chunk": 200, "burn_in": 40, "tol": np.inf, "starts": starts}
+    _smooth(case, tmp_path / "threads.h5", **kw)
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
     ) as cluster, distributed.Client(cluster) as client:  # fmt: skip
-        info = _smooth(case, tmp_path / "dask.h5", chunk=200, burn_in=40, tol=np.inf,
-                       client=client)  # fmt: skip
+        info = _smooth(case, tmp_path / "dask.h5", client=client, **kw)
     assert info["scheduler"] == "dask"
     a = acm_rs.read_chunked(tmp_path / "threads.h5")
     b = acm_rs.read_chunked(tmp_path / "dask.h5")
     for k in ("joints", "joints_std", "markers", "t", "r", "status", "burn_in"):
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_checkpointed_chunks_match_the_exact_smoother(case, tmp_path):
+    # issue 16's target: chunks started from the exact filter's checkpoints differ from
+    # the exact smoother (the streaming one) by at most 1 % of the posterior SD; the seams
+    # say so, and a burn-in too short for it is found and extended
+    S = pytest.importorskip("acm_rs.tracking.streaming")
+    src = L._Source(case["det"], case["lik"])
+    S.smooth_streaming(case["model"], src, tmp_path / "exact.h5", segment=300, poor_fit=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no seam beyond tol
+        info = _smooth(case, tmp_path / "ck.h5", chunk=300, burn_in=4, tol=0.01,
+                       max_burn_in=512, starts="checkpoints", poor_fit=None)  # fmt: skip
+    exact, ck = (acm_rs.read_chunked(tmp_path / f) for f in ("exact.h5", "ck.h5"))
+    rel = np.abs(ck["joints"] - exact["joints"]) / exact["joints_std"]
+    assert np.nanmax(rel) <= 0.01, np.nanmax(rel)
+    assert info["starts"] == "checkpoints" and info["n_chunks"] == 2
+    assert info["windows_recomputed"] > 0  # burn-in 4 was too short for 1 % somewhere
+    assert ck["burn_in"].max() > 4 and info["seam_difference_max"] <= 0.01
+    np.testing.assert_array_equal(ck["status"], exact["status"])
 
 
 class _Failing:
@@ -124,7 +147,8 @@ class _Failing:
 def test_a_failure_leaves_no_file(case, tmp_path):
     src = L._Source(_Failing(case["det"]), case["lik"])
     with pytest.raises(OSError, match="disk gone"):
-        L.smooth_chunked(case["model"], src, tmp_path / "x.h5", chunk=150, burn_in=20)
+        L.smooth_chunked(case["model"], src, tmp_path / "x.h5", chunk=150, burn_in=20,
+                         starts="fresh")  # fmt: skip
     assert list(tmp_path.iterdir()) == []
 
 

@@ -55,7 +55,7 @@ from ..camera import CameraRig
 from ..learning import check_scale, check_units
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
-from .streaming import smooth_streaming
+from .streaming import forward_pass, smooth_streaming
 from .track import (
     DEFAULT_GATE,
     DEFAULT_LL_TOL,
@@ -394,8 +394,8 @@ class _LocalMap:
         self.model, self.pool = model, ThreadPoolExecutor(max_workers=max(1, workers))
         self.workers = max(1, workers)
 
-    def submit(self, det, lik):
-        return self.pool.submit(smooth_window, self.model, det, lik)
+    def submit(self, det, lik, prior=None):
+        return self.pool.submit(smooth_window, self.model, det, lik, prior)
 
     def close(self) -> None:
         self.pool.shutdown()
@@ -412,8 +412,8 @@ class _DaskMap:
         self.model = self.client.scatter(model, broadcast=True)
         self.workers = max(1, len(self.client.scheduler_info()["workers"]))
 
-    def submit(self, det, lik):
-        return self.client.submit(smooth_window, self.model, det, lik, pure=False)
+    def submit(self, det, lik, prior=None):
+        return self.client.submit(smooth_window, self.model, det, lik, prior, pure=False)
 
     def close(self) -> None:
         if self.own:
@@ -431,12 +431,26 @@ def smooth_chunked(
     max_burn_in: int | None = None,
     client=None,
     workers: int = 2,
+    starts: str = "checkpoints",
     info: dict | None = None,
     progress: bool | None = False,
+    **checkpoint_options,
 ) -> dict:
     """Smooth a whole recording with fixed parameters, core by core (see the module
     docstring), writing the HDF5 file ``out``; returns the run's info (also stored in the
-    file's ``info`` attribute)."""
+    file's ``info`` attribute). ``starts``: ``"checkpoints"`` (default; see
+    :func:`smooth_checkpointed`, which takes ``checkpoint_options``: the exact filter's
+    checkpoints from a sequential forward pass, then the chunks in parallel: within ``tol``
+    SDs of the exact smoother) or ``"fresh"`` (every window from its own single-frame fit
+    with ``burn_in`` frames on both sides: no sequential pass, but windows reach different
+    poses)."""
+    if starts == "checkpoints":
+        return smooth_checkpointed(
+            model, source, out, chunk=chunk, burn_in=burn_in, tol=tol, max_burn_in=max_burn_in,
+            client=client, workers=workers, info=info, progress=progress, **checkpoint_options,
+        )  # fmt: skip
+    if starts != "fresh":
+        raise ValueError(f"starts must be 'checkpoints' or 'fresh', got {starts!r}")
     t_start = time.perf_counter()
     T = source.n_frames
     if chunk < 1 or burn_in < 1:
@@ -528,6 +542,133 @@ def smooth_chunked(
             "seconds_smoothing": time.perf_counter() - t_start,
             "scheduler": "dask" if client is not None else f"threads({workers})",
             "stats": totals, "acm_rs_version": __version__,
+        }  # fmt: skip
+        stored = dict(info or {}) | run
+        stored |= {"seam_frames": seam_frames, "seam_difference": seam_diff, "burn_in": burn}
+        stored_params = model.params | {"window_prior_cov": model.prior_cov}
+        if model.rw_params is not None:
+            stored_params |= {f"rw_{k}": v for k, v in model.rw_params.items()}
+            stored_params["rw_window_prior_cov"] = model.rw_prior_cov
+        writer.close(stored, stored_params)
+        return (
+            dict(info or {})
+            | run
+            | {"seam_difference_max": float(max(seam_diff)) if seam_diff else 0.0}
+        )
+    except BaseException:
+        writer.abort()
+        raise
+    finally:
+        runner.close()
+
+
+def smooth_checkpointed(
+    model: _Model,
+    source: _Source,
+    out: Path,
+    *,
+    chunk: int = DEFAULT_CHUNK,
+    burn_in: int = DEFAULT_BURN_IN,
+    tol: float = DEFAULT_TOL,
+    max_burn_in: int | None = None,
+    poor_fit: float | None = 4.0,
+    typical_px: float | None = None,
+    restart: bool = True,
+    client=None,
+    workers: int = 2,
+    info: dict | None = None,
+    progress: bool | None = False,
+) -> dict:
+    """The chunked smoother started from the exact filter's checkpoints (``starts=
+    "checkpoints"`` of :func:`smooth_chunked`): the forward pass of the streaming smoother
+    (:func:`~acm_rs.tracking.streaming.forward_pass`, sequential, with its restarts) keeps
+    the filtered moments at every chunk's start; then every chunk is filtered again from
+    its checkpoint — the exact filter — over its frames and ``burn_in`` frames after them,
+    and smoothed backwards from the filtered end there (in parallel: threads or Dask). Only
+    that end differs from the exact smoother, whose backward pass forgets it
+    geometrically: at each seam the chunk's last frames are compared with the next chunk's
+    estimate (exact there up to its own far end), and the burn-in is doubled while they
+    differ by more than ``tol`` posterior SDs. A chunk reaching the end of its sequence is
+    the exact smoother. The next chunk's estimate stands for the exact one when it reaches
+    much further than the burn-in (the default chunks of 2,000 frames do: the difference
+    fell from 0.7 to 0.0007 SD between 150 and 300 frames of burn-in on the test rat)."""
+    t_start = time.perf_counter()
+    T = source.n_frames
+    if chunk < 2 or burn_in < 2:
+        raise ValueError(f"chunk and burn_in must be >= 2, got {chunk}, {burn_in}")
+    max_burn_in = max(burn_in, max_burn_in if max_burn_in is not None else 8 * burn_in)
+    show = _on_terminal(progress)
+    fwd = forward_pass(
+        model, source, chunk, poor_fit=poor_fit, typical_px=typical_px, restart=restart,
+        folder=None, filtered_px=np.full(T, np.nan), show=show,
+    )  # fmt: skip
+    segs = fwd.segments
+    t_forward = time.perf_counter() - t_start
+    ends, end = [0] * len(segs), T
+    for k in range(len(segs) - 1, -1, -1):  # the end of each chunk's sequence
+        end = segs[k].b if segs[k].last else end
+        ends[k] = end
+    burn = [burn_in] * len(segs)
+    runner = _DaskMap(model, client) if client is not None else _LocalMap(model, workers)
+    try:
+        writer = _H5Writer(out, T, model.skeleton, len(model.rig), chunk)
+    except BaseException:
+        runner.close()
+        raise
+    recomputed, disagree, seam_frames, seam_diff = 0, [], [], []
+
+    def submit(k: int):
+        seg = segs[k]
+        w1 = min(seg.b + burn[k], ends[k])
+        return runner.submit(*source.window(seg.a, w1), prior=(seg.mu, seg.cov))
+
+    try:
+        depth = runner.workers + 1
+        pending = {k: submit(k) for k in range(min(depth, len(segs)))}
+        for k, seg in enumerate(segs):
+            if k + depth < len(segs):
+                pending[k + depth] = submit(k + depth)
+            res = pending.pop(k).result()
+            if not seg.last:
+                # the next chunk starts at this one's end with the exact filter
+                nxt = pending[k + 1].result()
+                e = seg.b
+                frames = [f for f in (e, e + 1) if f < segs[k + 1].b]
+                while True:
+                    # (no "must halve" rule here: the difference does shrink towards the
+                    # sequence's end, but slowly where the posterior SD is small)
+                    diff = _seam_difference(res, seg.a, nxt, e, frames)
+                    reached = seg.b + burn[k] >= ends[k]
+                    if diff <= tol or reached or burn[k] >= max_burn_in:
+                        break
+                    burn[k] = min(2 * burn[k], max_burn_in)
+                    recomputed += 1
+                    res = submit(k).result()
+                seam_frames.append(e)
+                seam_diff.append(diff)
+                if diff > tol and not reached:  # (reached: this chunk is the exact smoother)
+                    disagree.append(e)
+            writer.write(seg.a, seg.b, res, seg.a)
+            if show:
+                print(f"\rsmoothed {seg.b}/{T} frames", end="", file=sys.stderr, flush=True)
+        if show:
+            print(file=sys.stderr)
+        if disagree:
+            warnings.warn(
+                f"{len(disagree)} seam(s) between checkpointed chunks differ by more than {tol} "
+                f"posterior SD (up to {max(seam_diff):.3g} SD, burn-in up to {max(burn)} "
+                f"frames; frames {disagree[:5]})",
+                stacklevel=2,
+            )
+        run = {
+            "chunk": int(chunk), "burn_in_default": int(burn_in), "tol": float(tol),
+            "max_burn_in": int(max_burn_in), "windows_recomputed": recomputed,
+            "seams_disagreeing": disagree, "n_frames": T, "n_chunks": len(segs),
+            "starts": "checkpoints", "restarts": fwd.restarts[:100],
+            "n_restarts": len(fwd.restarts), "seconds_forward": t_forward,
+            "seconds_smoothing": time.perf_counter() - t_start,
+            "scheduler": "dask" if client is not None else f"threads({workers})",
+            "stats": fwd.totals, "acm_rs_version": __version__,
         }  # fmt: skip
         stored = dict(info or {}) | run
         stored |= {"seam_frames": seam_frames, "seam_difference": seam_diff, "burn_in": burn}

@@ -173,6 +173,114 @@ def _finish(model: _Model, writer: _H5Writer, seg: _Segment, native) -> None:
     writer.write(seg.a, seg.b, res, seg.a)
 
 
+@dataclass
+class ForwardPass:
+    """What the forward pass of :func:`forward_pass` leaves: the segments (with their
+    checkpoints and sequence ends), the filter's counts, a typical frame's reprojection
+    error (px) and the frames where new sequences started."""
+
+    segments: list[_Segment]
+    totals: dict[str, float]
+    typical: float | None
+    restarts: list[int]
+
+
+def forward_pass(
+    model: _Model,
+    source: _Source,
+    segment: int,
+    *,
+    poor_fit: float | None,
+    typical_px: float | None,
+    restart: bool,
+    folder: Path | None,
+    filtered_px,
+    show: bool = False,
+) -> ForwardPass:
+    """The forward pass of the streaming smoother (module docstring): the recording filtered
+    segment after segment, each segment's checkpoint kept, a new sequence started where the
+    filter lost the animal (``restart``), each frame's reprojection error written into
+    ``filtered_px`` (length ``T``: an array or an HDF5 dataset), and the filtered moments
+    spilled to ``folder`` if given."""
+    T = source.n_frames
+    sm = StateMap(model.skeleton, model.norm, model.joint_limits)
+    n = sm.n_state
+    totals: dict[str, float] = {}
+    segs: list[_Segment] = []
+    a, prior = 0, None
+    # one segment at a time: its tracker uses all cores (the sigma points and the Gram
+    # products of each frame split between them; 2 vCPU: 2,250 vs 2,000 frames/s)
+    sequential = replace(model, threads=0)
+    typical = typical_px if typical_px is not None and math.isfinite(typical_px) else None
+    restarts: list[int] = []
+    last_restart = -1
+    with ThreadPoolExecutor(max_workers=1) as saver:
+        saved: Future | None = None
+
+        def keep(seg: _Segment, native, det, stats, px=None) -> None:
+            """Accept a filtered segment: counts, spill, reprojection errors."""
+            nonlocal saved, typical
+            for key, v in stats.items():
+                totals[key] = totals.get(key, 0.0) + float(v)
+            if folder is not None:
+                means, packed = native.filtered_packed()
+                if saved is not None:
+                    saved.result()  # one segment in flight: memory stays bounded
+                saved = saver.submit(_save_segment, folder, len(segs), means, packed,
+                                     native.mask())  # fmt: skip
+            if px is None:
+                px = frame_px(model, sm, native.means()[1:, :n], det)
+            if typical is None and np.isfinite(px).any():
+                typical = float(np.nanmedian(px))
+            filtered_px[seg.a : seg.b] = px
+            segs.append(seg)
+
+        while a < T:
+            b = min(a + segment, T)
+            fresh = prior is None
+            if fresh:
+                det = model.detections(*source.window(a, b))
+                mu = _window_prior(sequential, det)
+                if mu is None:  # nothing to start from in these frames
+                    a = b
+                    continue
+                prior = (mu, model.prior_cov)
+            seg = _Segment(a, b, prior[0], prior[1])
+            native, det, stats = _filtered(sequential, source, seg)
+            cut, px = None, None
+            if restart and poor_fit is not None:
+                px = frame_px(model, sm, native.means()[1:, :n], det)
+                ref = typical
+                if ref is None and np.isfinite(px).any():
+                    ref = float(np.nanmedian(px))
+                for s0, _ in [] if ref is None else poor_stretches(px, poor_fit * ref):
+                    # the filter lost the animal at a + s0: start afresh there (not where it
+                    # has just started afresh: then the detections are off)
+                    if a + s0 > last_restart and (s0 > 0 or not fresh):
+                        cut = a + s0
+                        break
+            if cut is None:
+                keep(seg, native, det, stats, px)
+                prior = native.state_row(-1)
+                a = b
+            else:
+                del native
+                if cut > a:  # the frames before the loss end this sequence
+                    part = _Segment(a, cut, seg.mu, seg.cov)
+                    keep(part, *_filtered(sequential, source, part))
+                if segs:
+                    segs[-1].last = True
+                restarts.append(cut)
+                last_restart, prior, a = cut, None, cut
+            if show:
+                print(f"\rfiltered {a}/{T} frames", end="", file=sys.stderr, flush=True)
+        if saved is not None:
+            saved.result()
+    if segs:
+        segs[-1].last = True
+    return ForwardPass(segs, totals, typical, restarts)
+
+
 def smooth_streaming(
     model: _Model,
     source: _Source,
@@ -221,80 +329,11 @@ def smooth_streaming(
         filtered_px = writer.f.create_dataset(
             "filtered_px", (T,), dtype="f8", chunks=(max(1, min(segment, T)),), fillvalue=np.nan
         )
-        totals: dict[str, float] = {}
-        # -- forward: checkpoints (and the spill) --------------------------------------------
-        segs: list[_Segment] = []
-        a, prior = 0, None
-        # one segment at a time: its tracker uses all cores (the sigma points and the Gram
-        # products of each frame split between them; 2 vCPU: 2,250 vs 2,000 frames/s)
-        sequential = replace(model, threads=0)
-        typical = typical_px if typical_px is not None and math.isfinite(typical_px) else None
-        restarts: list[int] = []
-        last_restart = -1
-        with ThreadPoolExecutor(max_workers=1) as saver:
-            saved: Future | None = None
-
-            def keep(seg: _Segment, native, det, stats, px=None) -> None:
-                """Accept a filtered segment: counts, spill, reprojection errors."""
-                nonlocal saved, typical
-                for key, v in stats.items():
-                    totals[key] = totals.get(key, 0.0) + float(v)
-                if folder is not None:
-                    means, packed = native.filtered_packed()
-                    if saved is not None:
-                        saved.result()  # one segment in flight: memory stays bounded
-                    saved = saver.submit(_save_segment, folder, len(segs), means, packed,
-                                         native.mask())  # fmt: skip
-                if px is None:
-                    px = frame_px(model, sm, native.means()[1:, :n], det)
-                if typical is None and np.isfinite(px).any():
-                    typical = float(np.nanmedian(px))
-                filtered_px[seg.a : seg.b] = px
-                segs.append(seg)
-
-            while a < T:
-                b = min(a + segment, T)
-                fresh = prior is None
-                if fresh:
-                    det = model.detections(*source.window(a, b))
-                    mu = _window_prior(sequential, det)
-                    if mu is None:  # nothing to start from in these frames
-                        a = b
-                        continue
-                    prior = (mu, model.prior_cov)
-                seg = _Segment(a, b, prior[0], prior[1])
-                native, det, stats = _filtered(sequential, source, seg)
-                cut, px = None, None
-                if restart and poor_fit is not None:
-                    px = frame_px(model, sm, native.means()[1:, :n], det)
-                    ref = typical
-                    if ref is None and np.isfinite(px).any():
-                        ref = float(np.nanmedian(px))
-                    for s0, _ in [] if ref is None else poor_stretches(px, poor_fit * ref):
-                        # the filter lost the animal at a + s0: start afresh there (not
-                        # where it has just started afresh: then the detections are off)
-                        if a + s0 > last_restart and (s0 > 0 or not fresh):
-                            cut = a + s0
-                            break
-                if cut is None:
-                    keep(seg, native, det, stats, px)
-                    prior = native.state_row(-1)
-                    a = b
-                else:
-                    del native
-                    if cut > a:  # the frames before the loss end this sequence
-                        part = _Segment(a, cut, seg.mu, seg.cov)
-                        keep(part, *_filtered(sequential, source, part))
-                    if segs:
-                        segs[-1].last = True
-                    restarts.append(cut)
-                    last_restart, prior, a = cut, None, cut
-                if show:
-                    print(f"\rfiltered {a}/{T} frames", end="", file=sys.stderr, flush=True)
-            if saved is not None:
-                saved.result()
-        if segs:
-            segs[-1].last = True
+        fwd = forward_pass(
+            model, source, segment, poor_fit=poor_fit, typical_px=typical_px, restart=restart,
+            folder=folder, filtered_px=filtered_px, show=show,
+        )  # fmt: skip
+        segs, totals, typical, restarts = fwd.segments, fwd.totals, fwd.typical, fwd.restarts
         limit = None if poor_fit is None or typical is None else poor_fit * typical
         poor = [] if limit is None else poor_stretches(filtered_px[:], limit)
         t_forward = time.perf_counter() - t_start

@@ -118,20 +118,30 @@ def set_hint(model: _Model, native, det: np.ndarray, x: np.ndarray, mu0: np.ndar
     return True
 
 
-def smooth_window(model: _Model, det_raw: np.ndarray, lik_raw: np.ndarray | None) -> dict | None:
+def smooth_window(
+    model: _Model,
+    det_raw: np.ndarray,
+    lik_raw: np.ndarray | None,
+    prior: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict | None:
     """Filter and smooth one window with the fixed parameters (Alg. 7 + 9) from its own
-    prior; the posterior of every frame of the window (arrays with the window's frames on
+    prior (the single-frame fit of its first frame with enough detections) or from
+    ``prior = (mean, cov)`` of the state before its first frame (e.g. a checkpoint of the
+    filter); the posterior of every frame of the window (arrays with the window's frames on
     the first axis; ``status`` is ``(C, W, M)``), or None if no frame of the window has
     enough detections to start from."""
     det = model.detections(det_raw, lik_raw)
-    mu0 = _window_prior(model, det)
-    if mu0 is None:
-        return None
+    if prior is None:
+        mu0, cov0 = _window_prior(model, det), model.prior_cov
+        if mu0 is None:
+            return None
+    else:
+        mu0, cov0 = prior
     x = _normalized(model.norm, det)
     native = model.tracker(x)
     set_hint(model, native, det, x, mu0)
     p = model.params
-    stats = native.e_step(mu0, model.prior_cov, p["Vz"], p["Vx_diag"], model.gate,
+    stats = native.e_step(mu0, cov0, p["Vz"], p["Vx_diag"], model.gate,
                           statistics=False)  # fmt: skip
     poses, joints, markers, joints_std, markers_std = native.posterior()
     status = native.mask()[..., 0].transpose(1, 0, 2)  # (C, W, M)
