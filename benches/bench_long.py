@@ -90,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--windows", type=int, default=L.DEFAULT_WINDOWS)
     ap.add_argument("--chunk", type=int, default=L.DEFAULT_CHUNK)
     ap.add_argument("--burn-in", type=int, default=L.DEFAULT_BURN_IN)
+    ap.add_argument("--tol", type=float, default=L.DEFAULT_TOL,
+                    help="chunked: seam tolerance in posterior SDs")  # fmt: skip
     ap.add_argument("--motion", default="auto", choices=["auto", "velocity", "random_walk"])
     ap.add_argument("--method", default="chunked", choices=["chunked", "streaming"])
     ap.add_argument("--compare", action="store_true",
@@ -118,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         info = acm_rs.track_long(
             rig, sk, det, folder / "poses.h5", likelihood=lik, subset=args.subset,
-            n_windows=args.windows, chunk=args.chunk, burn_in=args.burn_in,
+            n_windows=args.windows, chunk=args.chunk, burn_in=args.burn_in, tol=args.tol,
             motion=args.motion, overwrite=True, method=args.method,
         )  # fmt: skip
         total = time.perf_counter() - t0
