@@ -121,6 +121,25 @@ def test_restart_where_the_filter_lost_the_animal(case, tmp_path):
     assert info["restarts"] == []
 
 
+def test_restart_where_most_entries_are_gated(case, tmp_path):
+    # a quarter of the markers 25 px off in every camera from frame 250 on: the gate rejects
+    # them frame after frame (> 5 % of the entries for 50+ frames), which restarts the filter
+    # even where the frames' reprojection test (poor_fit, here out of reach) does not
+    det = case["det"].copy()
+    det[:, 250:, :10] += 25.0
+    info = _stream(case, tmp_path / "g.h5", det=det, segment=200, poor_fit=1000.0)
+    assert len(info["restarts"]) >= 1 and 250 <= info["restarts"][0] <= 256, info["restarts"]
+    assert _stream(case, tmp_path / "c.h5", segment=200, poor_fit=1000.0)["restarts"] == []
+
+
+def test_gated_fraction():
+    mask = np.zeros((3, 2, 2, 2), np.uint8)  # frames, cameras, markers, (u, v)
+    mask[0] = 1
+    mask[0, 0, 0] = 2  # 2 of 8 entries gated
+    mask[1, 1] = 1  # 4 measured, none gated; frame 2: nothing measured
+    np.testing.assert_allclose(S.gated_fraction(mask), [0.25, 0.0, 0.0])
+
+
 def test_poor_stretches():
     px = np.array([1, 9, 9, 9, 1, 9, 9, np.nan, 9, 9, 9, 9], float)
     assert S.poor_stretches(px, 5.0, run=3) == [(1, 4), (8, 12)]
