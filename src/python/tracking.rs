@@ -288,9 +288,11 @@ impl PyTracker {
             )),
             None => None,
         };
-        let inner = &mut self.inner;
+        let (inner, pool) = (&mut self.inner, &self.pool);
         py.detach(|| {
-            inner.smooth_filtered(&p, end.as_ref().map(|(m, c)| (m.as_slice(), c.as_slice())))
+            in_pool(pool, || {
+                inner.smooth_filtered(&p, end.as_ref().map(|(m, c)| (m.as_slice(), c.as_slice())))
+            })
         })
         .map_err(to_py)
     }

@@ -412,19 +412,7 @@ fn hinted_update<E: Emission + ?Sized>(
         ws.used = before;
         return Ok(None);
     };
-    let mut first = Update::default();
-    linear_update(
-        mbar,
-        l_full.as_slice(),
-        n,
-        &ws.ytil,
-        nu.as_slice(),
-        &mut ws.gram,
-        &mut ws.u,
-        &mut ws.b,
-        frame,
-        &mut first,
-    )?;
+    let first = fresh_update(mbar, l_full, n, &nu, frame, ws)?;
     let up = relinearized(
         em,
         mbar,
@@ -542,6 +530,23 @@ fn linear_update(
     }
     symmetrize_slice(&mut out.v, ns);
     Ok(())
+}
+
+/// [`linear_update`] of the prior `(m̄, L̃)` with the linearisation in `ws.ytil` and the
+/// innovation `nu` into a new [`Update`] (the rare, relinearised paths).
+fn fresh_update(
+    mbar: &[f64],
+    l_full: &DMatrix<f64>,
+    n: usize,
+    nu: &DVector<f64>,
+    frame: usize,
+    ws: &mut Workspace,
+) -> Result<Update> {
+    let mut up = Update::default();
+    let (ytil, gram, u, b) = (&ws.ytil, &mut ws.gram, &mut ws.u, &mut ws.b);
+    let l = l_full.as_slice();
+    linear_update(mbar, l, n, ytil, nu.as_slice(), gram, u, b, frame, &mut up)?;
+    Ok(up)
 }
 
 /// The prediction of Alg. 6 lines 2-4 for the linear transition `F` of the state's order
@@ -668,20 +673,7 @@ fn relinearized<E: Emission + ?Sized>(
         else {
             break;
         };
-        let mut next = Update::default();
-        linear_update(
-            mbar,
-            l_full.as_slice(),
-            n,
-            &ws.ytil,
-            nu.as_slice(),
-            &mut ws.gram,
-            &mut ws.u,
-            &mut ws.b,
-            frame,
-            &mut next,
-        )?;
-        best = Some(next);
+        best = Some(fresh_update(mbar, l_full, n, &nu, frame, ws)?);
     }
     Ok(best)
 }

@@ -53,46 +53,8 @@ pub(crate) fn smooth_in_place(
     Ok(acc)
 }
 
-/// The sequential form of [`smooth_in_place`] (the reference of the pipelined one in the
-/// tests).
-#[cfg(test)]
-pub(crate) fn smooth_in_place_sequential(
-    means: &mut [f64],
-    covs: &mut [f64],
-    vz: &[f64],
-    ns: usize,
-    n: usize,
-    statistics: bool,
-) -> Result<DMatrix<f64>> {
-    let steps = means.len() / ns;
-    let mut acc = DMatrix::zeros(ns, ns);
-    if steps < 2 {
-        return Ok(acc);
-    }
-    let vz = DMatrix::from_column_slice(ns, ns, vz);
-    for t in (0..steps - 1).rev() {
-        let (cov_head, cov_tail) = covs.split_at_mut((t + 1) * ns * ns);
-        let vf = DMatrix::from_column_slice(ns, ns, &cov_head[t * ns * ns..]);
-        let vs_next = DMatrix::from_column_slice(ns, ns, &cov_tail[..ns * ns]);
-        let (mean_head, mean_tail) = means.split_at_mut((t + 1) * ns);
-        let mf = DVector::from_column_slice(&mean_head[t * ns..]);
-        let ms_next = DVector::from_column_slice(&mean_tail[..ns]);
-        let (ms, vs, gt) = rts_step(&mf, &vf, &ms_next, &vs_next, &vz, n, t)?;
-        if !statistics {
-            mean_head[t * ns..].copy_from_slice(ms.as_slice());
-            cov_head[t * ns * ns..].copy_from_slice(vs.as_slice());
-            continue;
-        }
-        add_statistic(&mut acc, &ms, &vs, &ms_next, &vs_next, &gt, n);
-        mean_head[t * ns..].copy_from_slice(ms.as_slice());
-        cov_head[t * ns * ns..].copy_from_slice(vs.as_slice());
-    }
-    symmetrize(&mut acc);
-    Ok(acc)
-}
-
 /// Adds eq. 79's term of the pair `(t+1, t)` to `acc`.
-fn add_statistic(
+pub(crate) fn add_statistic(
     acc: &mut DMatrix<f64>,
     ms: &DVector<f64>,
     vs: &DMatrix<f64>,

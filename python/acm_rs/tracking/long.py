@@ -76,6 +76,7 @@ from .windows import (
     _Model,
     _normalized,
     _Source,
+    close_output,
     frame_px,
     smooth_window,
 )
@@ -420,6 +421,14 @@ class _DaskMap:
             self.client.close()
 
 
+def _close_chunked(writer, model: _Model, info, run: dict, frames, diffs, burn) -> dict:
+    """Stores a chunked run (info, seams, burn-ins, Θ) and returns its info."""
+    stored = dict(info or {}) | run
+    stored |= {"seam_frames": frames, "seam_difference": diffs, "burn_in": burn}
+    close_output(writer, model, stored)
+    return dict(info or {}) | run | {"seam_difference_max": float(max(diffs)) if diffs else 0.0}
+
+
 def smooth_chunked(
     model: _Model,
     source: _Source,
@@ -543,18 +552,7 @@ def smooth_chunked(
             "scheduler": "dask" if client is not None else f"threads({workers})",
             "stats": totals, "acm_rs_version": __version__,
         }  # fmt: skip
-        stored = dict(info or {}) | run
-        stored |= {"seam_frames": seam_frames, "seam_difference": seam_diff, "burn_in": burn}
-        stored_params = model.params | {"window_prior_cov": model.prior_cov}
-        if model.rw_params is not None:
-            stored_params |= {f"rw_{k}": v for k, v in model.rw_params.items()}
-            stored_params["rw_window_prior_cov"] = model.rw_prior_cov
-        writer.close(stored, stored_params)
-        return (
-            dict(info or {})
-            | run
-            | {"seam_difference_max": float(max(seam_diff)) if seam_diff else 0.0}
-        )
+        return _close_chunked(writer, model, info, run, seam_frames, seam_diff, burn)
     except BaseException:
         writer.abort()
         raise
@@ -670,18 +668,7 @@ def smooth_checkpointed(
             "scheduler": "dask" if client is not None else f"threads({workers})",
             "stats": fwd.totals, "acm_rs_version": __version__,
         }  # fmt: skip
-        stored = dict(info or {}) | run
-        stored |= {"seam_frames": seam_frames, "seam_difference": seam_diff, "burn_in": burn}
-        stored_params = model.params | {"window_prior_cov": model.prior_cov}
-        if model.rw_params is not None:
-            stored_params |= {f"rw_{k}": v for k, v in model.rw_params.items()}
-            stored_params["rw_window_prior_cov"] = model.rw_prior_cov
-        writer.close(stored, stored_params)
-        return (
-            dict(info or {})
-            | run
-            | {"seam_difference_max": float(max(seam_diff)) if seam_diff else 0.0}
-        )
+        return _close_chunked(writer, model, info, run, seam_frames, seam_diff, burn)
     except BaseException:
         writer.abort()
         raise

@@ -75,7 +75,16 @@ import numpy as np
 from .._version import __version__
 from ..state import StateMap
 from .track import _on_terminal
-from .windows import _H5Writer, _Model, _normalized, _Source, _window_prior, frame_px, set_hint
+from .windows import (
+    _H5Writer,
+    _Model,
+    _normalized,
+    _Source,
+    _window_prior,
+    close_output,
+    frame_px,
+    set_hint,
+)
 
 #: Frames per segment of the streaming smoother.
 DEFAULT_SEGMENT = 2000
@@ -370,8 +379,9 @@ def smooth_streaming(
             def ahead(i: int) -> None:
                 if i < len(order) and order[i] not in jobs:
                     k = order[i]
-                    if folder is not None:
-                        jobs[k] = pool.submit(_load_segment, model, source, segs[k], folder, k)
+                    if folder is not None:  # (one segment at a time: all cores for it)
+                        jobs[k] = pool.submit(_load_segment, replace(model, threads=0), source,
+                                              segs[k], folder, k)  # fmt: skip
                     else:
                         jobs[k] = pool.submit(lambda k=k: _filtered(model, source, segs[k])[0])
 
@@ -420,11 +430,7 @@ def smooth_streaming(
         }  # fmt: skip
         stored = dict(info or {}) | run
         stored |= {"seam_frames": [], "seam_difference": [], "burn_in": []}
-        stored_params = model.params | {"window_prior_cov": model.prior_cov}
-        if model.rw_params is not None:
-            stored_params |= {f"rw_{k}": v for k, v in model.rw_params.items()}
-            stored_params["rw_window_prior_cov"] = model.rw_prior_cov
-        writer.close(stored, stored_params)
+        close_output(writer, model, stored)
         return dict(info or {}) | run
     except BaseException:
         writer.abort()

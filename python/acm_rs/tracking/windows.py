@@ -213,6 +213,16 @@ def _release_pages(arr) -> None:
             pass
 
 
+def close_output(writer: _H5Writer, model: _Model, stored: dict) -> None:
+    """Stores the run's info and Θ (with the window prior, and the random walk's Θ where the
+    velocity model used it as linearisation hint) in the output and renames it into place."""
+    params = model.params | {"window_prior_cov": model.prior_cov}
+    if model.rw_params is not None:
+        params |= {f"rw_{k}": v for k, v in model.rw_params.items()}
+        params["rw_window_prior_cov"] = model.rw_prior_cov
+    writer.close(stored, params)
+
+
 class _H5Writer:
     """The output file, written core by core into a temporary file next to ``path`` and
     renamed onto it by :meth:`close` (never a partial file under ``path``)."""
