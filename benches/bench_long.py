@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--windows", type=int, default=L.DEFAULT_WINDOWS)
     ap.add_argument("--chunk", type=int, default=L.DEFAULT_CHUNK)
     ap.add_argument("--burn-in", type=int, default=L.DEFAULT_BURN_IN)
-    ap.add_argument("--tol", type=float, default=L.DEFAULT_TOL,
+    ap.add_argument("--tol", type=float, default=None,
                     help="chunked: seam tolerance in posterior SDs")  # fmt: skip
     ap.add_argument("--motion", default="auto", choices=["auto", "velocity", "random_walk"])
     ap.add_argument("--method", default="chunked", choices=["chunked", "streaming"])

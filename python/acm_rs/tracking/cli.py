@@ -358,9 +358,9 @@ def add_subcommands(sub) -> None:
     t.add_argument("--burn-in", type=int, default=100,
                    help="chunked: extra frames on each side of a chunk (100)")  # fmt: skip
     t.add_argument(
-        "--seam-tol", type=float, default=0.05,
+        "--seam-tol", type=float, default=None,
         help="chunked: largest seam difference between chunks in posterior SDs before the burn-in "
-        "is doubled (0.05)",
+        "is doubled (0.005)",
     )  # fmt: skip
     t.add_argument("--workers", type=int, default=2, help="threads without --scheduler (2)")
     t.add_argument("--scheduler", help="address of a running Dask scheduler (tcp://host:8786)")
