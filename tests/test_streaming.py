@@ -74,6 +74,15 @@ def test_spill_where_the_disk_has_room(case, tmp_path, monkeypatch):
         _stream(case, tmp_path / "x.h5", spill=tmp_path / "missing")
     with pytest.raises(ValueError, match="spill must be"):
         _stream(case, tmp_path / "x.h5", spill=3)
+    assert [p.name for p in tmp_path.iterdir()] == ["r.h5"]  # no partial file
+
+
+def test_output_in_a_new_folder(case, tmp_path):
+    # the default spill goes beside the output, whose folder may not exist yet
+    out = tmp_path / "new" / "deeper" / "s.h5"
+    info = _stream(case, out, segment=250, poor_fit=None)
+    assert info["spill"]
+    assert [p.name for p in out.parent.iterdir()] == ["s.h5"]
 
 
 def test_poorly_fit_stretches_are_reported(case, tmp_path):
@@ -119,6 +128,20 @@ def test_restart_where_the_filter_lost_the_animal(case, tmp_path):
     with pytest.warns(UserWarning, match="reproject"):
         info = _stream(case, tmp_path / "n.h5", det=det, restart=False, **kw)
     assert info["restarts"] == []
+
+
+def test_a_poor_stretch_across_a_segment_boundary_counts_whole(case, tmp_path):
+    # 15 poor frames, 7 before the boundary at 200 and 8 after: neither part alone is a
+    # stretch of POOR_FRAMES (10), together they are; the new sequence starts at the
+    # boundary (the earliest frame of the segment being filtered)
+    assert S.POOR_FRAMES == 10
+    det = case["det"].copy()
+    det[:, 193:208] += 40.0
+    with pytest.warns(UserWarning, match="reproject"):
+        info = _stream(case, tmp_path / "x.h5", det=det, segment=200, typical_px=2.0)
+    assert info["restarts"] == [200], info["restarts"]
+    (a, b), *_ = info["poor_fit"]
+    assert a <= 195 and b >= 205, info["poor_fit"]
 
 
 def test_restart_where_most_entries_are_gated(case, tmp_path):

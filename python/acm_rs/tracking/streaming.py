@@ -115,6 +115,26 @@ def _filtered(model: _Model, source: _Source, seg: _Segment):
     return native, det, stats
 
 
+def report_poor_fit(
+    px: np.ndarray, poor_fit: float | None, typical: float | None
+) -> tuple[list[tuple[int, int]], float | None]:
+    """The stretches of :func:`poor_stretches` of the frames' reprojection errors ``px``
+    (``(T,)``, px) above ``poor_fit × typical`` (px), with a warning if there are any, and
+    that limit (None: ``poor_fit`` or ``typical`` is None, nothing reported)."""
+    limit = None if poor_fit is None or typical is None else poor_fit * typical
+    poor = [] if limit is None else poor_stretches(px, limit)
+    if poor:
+        frames = sum(b - a for a, b in poor)
+        warnings.warn(
+            f"{len(poor)} stretch(es) ({frames} frames, first {poor[:3]}) where the "
+            f"filtered poses reproject > {limit:.3g} px ({poor_fit} x a typical frame's "
+            f"{typical:.3g} px) for {POOR_FRAMES}+ frames: a moved camera, another animal, "
+            "or movement the fixed parameters cannot follow (dataset filtered_px)",
+            stacklevel=3,
+        )
+    return poor, limit
+
+
 def poor_stretches(px: np.ndarray, limit: float, run: int = POOR_FRAMES) -> list[tuple[int, int]]:
     """Frame ranges ``[(start, stop)]`` of at least ``run`` consecutive frames with
     ``px > limit`` (NaN counts as fine: no detections to judge by)."""
@@ -226,8 +246,10 @@ def forward_pass(
     show: bool = False,
 ) -> ForwardPass:
     """The forward pass of the streaming smoother (module docstring): the recording filtered
-    segment after segment, each segment's checkpoint kept, a new sequence started where the
-    filter lost the animal (``restart``), each frame's reprojection error written into
+    segment after segment (``segment`` frames each), each segment's checkpoint kept, a new
+    sequence started where the filter lost the animal (``restart``; ``poor_fit`` a multiple
+    of ``typical_px``, a typical frame's 90th percentile reprojection error in px, None: the
+    median over the first segment), each frame's reprojection error (px) written into
     ``filtered_px`` (length ``T``: an array or an HDF5 dataset), and the filtered moments
     spilled to ``folder`` if given."""
     T = source.n_frames
@@ -276,14 +298,30 @@ def forward_pass(
             seg = _Segment(a, b, prior[0], prior[1])
             native, det, stats = _filtered(sequential, source, seg)
             cut, px = None, None
+            if fresh:
+                tail_px, tail_g = np.zeros(0), np.zeros(0)
             if restart and poor_fit is not None:
                 px = frame_px(model, sm, native.means()[1:, :n], det)
+                gated = gated_fraction(native.mask())
                 ref = typical
                 if ref is None and np.isfinite(px).any():
                     ref = float(np.nanmedian(px))
-                lost = [] if ref is None else poor_stretches(px, poor_fit * ref)
-                lost += poor_stretches(gated_fraction(native.mask()), RESTART_GATED,
-                                       run=RESTART_GATED_FRAMES)  # fmt: skip
+                # the previous segment's last frames of this sequence go in front: a stretch
+                # across the boundary counts whole (and starts here at the earliest)
+                pre_px, pre_g = len(tail_px), len(tail_g)
+                lost = [] if ref is None else [
+                    (max(0, s0 - pre_px), e - pre_px)
+                    for s0, e in poor_stretches(np.concatenate([tail_px, px]), poor_fit * ref)
+                    if e > pre_px
+                ]  # fmt: skip
+                lost += [
+                    (max(0, s0 - pre_g), e - pre_g)
+                    for s0, e in poor_stretches(np.concatenate([tail_g, gated]), RESTART_GATED,
+                                                run=RESTART_GATED_FRAMES)
+                    if e > pre_g
+                ]  # fmt: skip
+                tail_px = px[-(POOR_FRAMES - 1) :] if POOR_FRAMES > 1 else px[:0]
+                tail_g = gated[-(RESTART_GATED_FRAMES - 1) :]
                 for s0, _ in sorted(lost):
                     # the filter lost the animal at a + s0: start afresh there (not where it
                     # has just started afresh: then the detections are off)
@@ -354,9 +392,11 @@ def smooth_streaming(
     need = spill_bytes(T, ns, n_meas, -(-T // segment))
     show = _on_terminal(progress)
     out = Path(out)
-    folder, no_spill = _spill_dir(spill, out, need)
+    # the writer first: it creates the output's folder, where the spill goes by default
     writer = _H5Writer(out, T, model.skeleton, len(model.rig), segment)
+    folder = None
     try:
+        folder, no_spill = _spill_dir(spill, out, need)
         filtered_px = writer.f.create_dataset(
             "filtered_px", (T,), dtype="f8", chunks=(max(1, min(segment, T)),), fillvalue=np.nan
         )
@@ -365,8 +405,7 @@ def smooth_streaming(
             folder=folder, filtered_px=filtered_px, show=show,
         )  # fmt: skip
         segs, totals, typical, restarts = fwd.segments, fwd.totals, fwd.typical, fwd.restarts
-        limit = None if poor_fit is None or typical is None else poor_fit * typical
-        poor = [] if limit is None else poor_stretches(filtered_px[:], limit)
+        poor, limit = report_poor_fit(filtered_px[:], poor_fit, typical)
         t_forward = time.perf_counter() - t_start
         # -- backward: the filtered moments (read back or filtered again, ahead), smoothed;
         # the posterior and the writing of each segment overlap the next one's smoothing --
@@ -407,15 +446,6 @@ def smooth_streaming(
                 written.result()
         if show:
             print(file=sys.stderr)
-        if poor:
-            frames = sum(b - a for a, b in poor)
-            warnings.warn(
-                f"{len(poor)} stretch(es) ({frames} frames, first {poor[:3]}) where the "
-                f"filtered poses reproject > {limit:.3g} px ({poor_fit} x a typical frame's "
-                f"{typical:.3g} px) for {POOR_FRAMES}+ frames: a moved camera, another animal, "
-                "or movement the fixed parameters cannot follow (dataset filtered_px)",
-                stacklevel=2,
-            )
         run = {
             "segment": int(segment), "n_frames": T, "n_segments": len(segs),
             "poor_fit": poor[:100], "poor_fit_frames": sum(b - a for a, b in poor),

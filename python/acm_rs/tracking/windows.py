@@ -126,10 +126,11 @@ def smooth_window(
 ) -> dict | None:
     """Filter and smooth one window with the fixed parameters (Alg. 7 + 9) from its own
     prior (the single-frame fit of its first frame with enough detections) or from
-    ``prior = (mean, cov)`` of the state before its first frame (e.g. a checkpoint of the
-    filter); the posterior of every frame of the window (arrays with the window's frames on
-    the first axis; ``status`` is ``(C, W, M)``), or None if no frame of the window has
-    enough detections to start from."""
+    ``prior = (mean (ns,), cov (ns, ns))`` of the state before its first frame, in the
+    normalised state coordinates (e.g. a checkpoint of the filter); the posterior of every
+    frame of the window (arrays with the window's frames on the first axis; ``status`` is
+    ``(C, W, M)``), or None if no frame of the window has enough detections to start
+    from."""
     det = model.detections(det_raw, lik_raw)
     if prior is None:
         mu0, cov0 = _window_prior(model, det), model.prior_cov
