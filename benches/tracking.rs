@@ -76,7 +76,7 @@ fn benches(c: &mut Criterion) {
     let ytil = pseudo_random(2 * n * n_x, 8);
     let mut gram = vec![0.0; 4 * n * n];
     c.bench_function("tracking/gram_100x344", |b| {
-        b.iter(|| dense::add_gram_rows(black_box(&ytil), 2 * n, n_x, &mut gram))
+        b.iter(|| dense::add_gram_rows(black_box(&ytil), 2 * n, n_x, &mut gram, true))
     });
 }
 

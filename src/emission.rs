@@ -257,6 +257,34 @@ pub fn emission_batch_into(
     states: &[f64],
     out: &mut [f64],
 ) -> Result<()> {
+    emission_batch_impl(skeleton, cameras, map, norm, states, out, true)
+}
+
+/// [`emission_batch_into`] on the calling thread alone (no hand-off to rayon's pool: nothing
+/// is allocated once the thread's scratch is sized, and no other thread is woken).
+///
+/// # Errors
+/// As [`emission_batch_into`].
+pub fn emission_batch_serial_into(
+    skeleton: &Skeleton,
+    cameras: &[Camera],
+    map: &StateMap,
+    norm: &Normalization,
+    states: &[f64],
+    out: &mut [f64],
+) -> Result<()> {
+    emission_batch_impl(skeleton, cameras, map, norm, states, out, false)
+}
+
+fn emission_batch_impl(
+    skeleton: &Skeleton,
+    cameras: &[Camera],
+    map: &StateMap,
+    norm: &Normalization,
+    states: &[f64],
+    out: &mut [f64],
+    parallel: bool,
+) -> Result<()> {
     norm.validate()?;
     ensure_len(map.n_pose(), skeleton.n_pose(), "state map pose length")?;
     let ns = map.n_state();
@@ -296,34 +324,41 @@ pub fn emission_batch_into(
             .collect();
         &on_heap
     };
-    // Tasks of >= 16 states: small enough for work stealing to balance a UKF step's 2n
-    // sigma points over the cores (one task per thread measured 30 % slower on this VM).
-    out.par_chunks_mut(block)
-        .zip(states.par_chunks(ns))
-        .with_min_len(16)
-        .for_each(|(o, z)| {
-            SCRATCH.with(|cell| {
-                let mut guard = cell.borrow_mut();
-                let Scratch { ws, pose, markers } = &mut *guard;
-                if !ws.as_ref().is_some_and(|w| w.fits(skeleton)) {
-                    *ws = Some(skeleton.workspace());
-                }
-                let ws = ws.as_mut().expect("set above");
-                pose.resize(skeleton.n_pose(), 0.0);
-                markers.resize(3 * skeleton.n_markers(), 0.0);
-                map.to_pose_into(z, pose, None);
-                skeleton.forward_flat_into(
-                    &pose[..3],
-                    &pose[3..],
-                    skeleton.lengths(),
-                    skeleton.offsets(),
-                    ws,
-                    None,
-                    markers,
-                );
-                project_all(projs, markers, o);
-            })
-        });
+    let one = |o: &mut [f64], z: &[f64]| {
+        SCRATCH.with(|cell| {
+            let mut guard = cell.borrow_mut();
+            let Scratch { ws, pose, markers } = &mut *guard;
+            if !ws.as_ref().is_some_and(|w| w.fits(skeleton)) {
+                *ws = Some(skeleton.workspace());
+            }
+            let ws = ws.as_mut().expect("set above");
+            pose.resize(skeleton.n_pose(), 0.0);
+            markers.resize(3 * skeleton.n_markers(), 0.0);
+            map.to_pose_into(z, pose, None);
+            skeleton.forward_flat_into(
+                &pose[..3],
+                &pose[3..],
+                skeleton.lengths(),
+                skeleton.offsets(),
+                ws,
+                None,
+                markers,
+            );
+            project_all(projs, markers, o);
+        })
+    };
+    if parallel {
+        // Tasks of >= 16 states: small enough for work stealing to balance a UKF step's 2n
+        // sigma points over the cores (one task per thread measured 30 % slower on this VM).
+        out.par_chunks_mut(block)
+            .zip(states.par_chunks(ns))
+            .with_min_len(16)
+            .for_each(|(o, z)| one(o, z));
+    } else {
+        for (o, z) in out.chunks_exact_mut(block).zip(states.chunks_exact(ns)) {
+            one(o, z);
+        }
+    }
     Ok(())
 }
 

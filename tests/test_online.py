@@ -61,6 +61,21 @@ def test_online_filter_equals_the_offline_forward_pass(data):
     np.testing.assert_allclose(joints, off_joints, rtol=0, atol=1e-9)
 
 
+def test_serial_steps_equal_the_parallel_ones(data):
+    """serial=True runs each step on the calling thread alone: the same arithmetic, so the
+    same poses and SDs bit for bit."""
+    sk, rig, det, lik, _, res = data
+    out = []
+    for serial in (False, True):
+        online = acm_rs.OnlineTracker.from_result(res, serial=serial)
+        out.append([online.update(det[:, t], lik[:, t]) for t in range(det.shape[1])])
+        assert online._native.serial is serial
+    for (j0, s0), (j1, s1) in zip(*out, strict=True):
+        np.testing.assert_array_equal(j0, j1)
+        np.testing.assert_array_equal(s0, s1)
+    assert np.isfinite(np.array([j for j, _ in out[1]])[5:]).all()
+
+
 def test_full_lag_window_is_the_offline_smoother_with_fixed_parameters(data):
     """lag >= T - 1: after the last frame, lagged_window() is the RTS smoother (Alg. 8) of
     the recording with Θ fixed, from the same start; its first row is lagged()."""

@@ -512,7 +512,7 @@ impl PyOnlineTracker {
 impl PyOnlineTracker {
     /// Parameters `mu0, v0, vz` of the state of size `order × n_state`, `vx` the diagonal.
     #[new]
-    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, mu0, v0, vz, vx, order=1, gate=None, relinearize=DEFAULT_RELINEARIZE, lag=0))]
+    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, mu0, v0, vz, vx, order=1, gate=None, relinearize=DEFAULT_RELINEARIZE, lag=0, serial=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         skeleton: &PySkeleton,
@@ -529,6 +529,7 @@ impl PyOnlineTracker {
         gate: Option<f64>,
         relinearize: usize,
         lag: usize,
+        serial: bool,
     ) -> PyResult<Self> {
         let em = emission_from(skeleton, &params, &lower, &upper, norm, joint_limits)?;
         let n_cams = em.cameras.len();
@@ -538,18 +539,29 @@ impl PyOnlineTracker {
             ns,
             crate::tracking::Emission::n_meas(&em),
         )?;
-        let inner = OnlineTracker::new(em, p, order, gate, relinearize, lag).map_err(to_py)?;
+        let mut inner = OnlineTracker::new(em, p, order, gate, relinearize, lag).map_err(to_py)?;
+        inner.set_serial(serial);
         Ok(Self { inner, n_cams })
     }
 
     /// One frame `x (n_cams, M, 2)` in normalised pixels (NaN = missing); the GIL is
-    /// released during the step.
+    /// released during the step (serial: on this thread alone; else inside rayon's pool).
     fn update(&mut self, py: Python<'_>, x: Arr<'_>) -> PyResult<()> {
         let m = self.inner.emission().skeleton.n_markers();
         let xs = view(&x, "x", &[Some(self.n_cams), Some(m), Some(2)])?;
         let inner = &mut self.inner;
-        py.detach(|| rayon::scope(|_| inner.update(xs)))
-            .map_err(to_py)
+        if inner.serial() {
+            py.detach(|| inner.update(xs)).map_err(to_py)
+        } else {
+            py.detach(|| rayon::scope(|_| inner.update(xs)))
+                .map_err(to_py)
+        }
+    }
+
+    /// Whether every step runs on the calling thread alone.
+    #[getter]
+    fn serial(&self) -> bool {
+        self.inner.serial()
     }
 
     /// Joints and SD of the last filtered frame.

@@ -119,16 +119,11 @@ pub fn chol_solve_mat(l: &DMatrix<f64>, b: &mut DMatrix<f64>) {
     lower_tr_solve_in_place(l.as_slice(), n, b.as_mut_slice());
 }
 
-/// Solves `L X = B` in place for a lower-triangular `l` with a non-zero diagonal.
-pub fn lower_solve_mat(l: &DMatrix<f64>, b: &mut DMatrix<f64>) {
-    lower_solve_in_place(l.as_slice(), l.nrows(), b.as_mut_slice());
-}
-
 /// `c ← c + a aᵀ` for `a` stored row-major as `rows × k` (each row one vector), `c` the
 /// `rows × rows` column-major result (exactly symmetric). The lower triangle by the
 /// allocation-free kernel of [`crate::kernels::syrk_rows_lower`], split between two threads
-/// by columns (equal shares of the triangle) when large, then mirrored.
-pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64]) {
+/// by columns (equal shares of the triangle) when large and `parallel`, then mirrored.
+pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64], parallel: bool) {
     debug_assert_eq!(a.len(), rows * k);
     debug_assert_eq!(c.len(), rows * rows);
     if rows == 0 || k == 0 {
@@ -138,7 +133,7 @@ pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64]) {
     let split = ((rows as f64) * (1.0 - std::f64::consts::FRAC_1_SQRT_2)).round() as usize;
     let split = split.clamp(1, rows) & !1; // even, so the 2-column blocks stay aligned
     let (c0, c1) = c.split_at_mut(split * rows);
-    if rows * rows * k > 200_000 {
+    if parallel && rows * rows * k > 200_000 {
         rayon::join(
             || syrk_rows_lower(a, rows, k, 0..split, c0),
             || syrk_rows_lower(a, rows, k, split..rows, c1),
@@ -163,26 +158,26 @@ fn mirror_lower(c: &mut [f64], n: usize) {
 pub fn at_a(a: &DMatrix<f64>) -> DMatrix<f64> {
     let (rows, cols) = a.shape();
     let mut c = DMatrix::zeros(cols, cols);
-    at_a_into(a.as_slice(), rows, cols, c.as_mut_slice());
+    at_a_into(a.as_slice(), rows, cols, c.as_mut_slice(), true);
     c
 }
 
 /// `out ← Aᵀ A` for a column-major `a` (`rows × cols`) into the `cols × cols` `out`
-/// (exactly symmetric; allocation-free: column `i` of `A` is row `i` of `Aᵀ`).
-pub fn at_a_into(a: &[f64], rows: usize, cols: usize, out: &mut [f64]) {
+/// (exactly symmetric; allocation-free: column `i` of `A` is row `i` of `Aᵀ`, so this is
+/// [`add_gram_rows`] of the columns, split between two threads when large and `parallel`).
+pub fn at_a_into(a: &[f64], rows: usize, cols: usize, out: &mut [f64], parallel: bool) {
     debug_assert!(a.len() >= rows * cols && out.len() >= cols * cols);
     out[..cols * cols].iter_mut().for_each(|v| *v = 0.0);
     if rows == 0 || cols == 0 {
         return;
     }
-    syrk_rows_lower(
+    add_gram_rows(
         &a[..rows * cols],
         cols,
         rows,
-        0..cols,
         &mut out[..cols * cols],
+        parallel,
     );
-    mirror_lower(out, cols);
 }
 
 /// `out ← out + A Aᵀ` for a column-major `a` (`rows × cols`) and the `rows × rows`
@@ -208,21 +203,28 @@ mod tests {
 
     #[test]
     fn gram_matches_naive_product() {
-        let (rows, k) = (7, 13);
-        let a: Vec<f64> = (0..rows * k)
-            .map(|i| ((i * 31 % 17) as f64) - 8.0)
-            .collect();
-        let mut c = vec![0.0; rows * rows];
-        for i in 0..rows {
-            c[i * rows + i] = 1.0;
-        }
-        add_gram_rows(&a, rows, k, &mut c);
-        for i in 0..rows {
-            for j in 0..rows {
-                let want: f64 = (0..k).map(|l| a[i * k + l] * a[j * k + l]).sum::<f64>()
-                    + if i == j { 1.0 } else { 0.0 };
-                assert!((c[j * rows + i] - want).abs() < 1e-9);
+        // small (one thread) and large (split between two threads unless serial)
+        for (rows, k) in [(7, 13), (66, 61)] {
+            let a: Vec<f64> = (0..rows * k)
+                .map(|i| ((i * 31 % 17) as f64) - 8.0)
+                .collect();
+            let mut results = Vec::new();
+            for parallel in [true, false] {
+                let mut c = vec![0.0; rows * rows];
+                for i in 0..rows {
+                    c[i * rows + i] = 1.0;
+                }
+                add_gram_rows(&a, rows, k, &mut c, parallel);
+                for i in 0..rows {
+                    for j in 0..rows {
+                        let want: f64 = (0..k).map(|l| a[i * k + l] * a[j * k + l]).sum::<f64>()
+                            + if i == j { 1.0 } else { 0.0 };
+                        assert!((c[j * rows + i] - want).abs() < 1e-9, "{rows}x{k}");
+                    }
+                }
+                results.push(c);
             }
+            assert_eq!(results[0], results[1], "serial and parallel differ");
         }
     }
 

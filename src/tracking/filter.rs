@@ -87,6 +87,9 @@ pub(crate) struct Workspace {
     u: Vec<f64>,
     b: Vec<f64>,
     up: Update,
+    /// Everything on the calling thread (no hand-off to rayon's pool; see
+    /// [`Emission::eval_batch_serial`]).
+    pub(crate) serial: bool,
 }
 
 impl Workspace {
@@ -113,7 +116,17 @@ impl Workspace {
             u: Vec::new(),
             b: Vec::new(),
             up: Update::default(),
+            serial: false,
         }
+    }
+}
+
+/// `g` of each row of `states` into `out`, on the calling thread alone if `serial`.
+fn eval<E: Emission + ?Sized>(em: &E, serial: bool, states: &[f64], out: &mut [f64]) -> Result<()> {
+    if serial {
+        em.eval_batch_serial(states, out)
+    } else {
+        em.eval_batch(states, out)
     }
 }
 
@@ -194,7 +207,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
     })?;
     // Alg. 6 lines 5-7: sigma points of (z̄, P) through g, and their mean x̄.
     sigma_points_from(&ws.mbar[..n], &ws.lfull, ns, &mut ws.sigma);
-    em.eval_batch(&ws.sigma, &mut ws.x)?;
+    eval(em, ws.serial, &ws.sigma, &mut ws.x)?;
     let m2 = 2 * n;
     let inv = 1.0 / m2 as f64;
     ws.used.clear();
@@ -285,6 +298,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
         &mut ws.u,
         &mut ws.b,
         frame,
+        !ws.serial,
         &mut ws.up,
     )?;
     if relinearize > 0 {
@@ -292,7 +306,8 @@ pub(crate) fn step<E: Emission + ?Sized>(
         ws.xhat.clear();
         ws.xhat.extend(ws.used.iter().map(|&j| ws.xbar[j]));
         let lin = (ws.ytil.as_slice(), ws.used.as_slice());
-        let err = linearisation_error(em, &ws.up, &ws.xhat, &ws.vx_eff, &mut ws.gx, lin)?;
+        let err =
+            linearisation_error(em, &ws.up, &ws.xhat, &ws.vx_eff, &mut ws.gx, lin, ws.serial)?;
         // (the usual case: the first update holds; the rest allocates and is rare)
         if err.is_nan() || err > RELIN_THRESHOLD {
             if let Some((hm, hv)) = hint {
@@ -345,7 +360,10 @@ fn hinted<E: Emission + ?Sized>(
     let mbar = ws.mbar.clone();
     let l_full = DMatrix::from_column_slice(ns, ns, &ws.lfull);
     let vx_eff = ws.vx_eff.clone();
-    hinted_update(
+    // the linearisation overwrites the prior's sigma-point images; kept for the caller's
+    // own update if it fails
+    let (x, xbar) = (ws.x.clone(), ws.xbar.clone());
+    let up = hinted_update(
         em,
         (&mbar, &l_full),
         x_t,
@@ -356,7 +374,12 @@ fn hinted<E: Emission + ?Sized>(
         mask,
         stats,
         ws,
-    )
+    )?;
+    if up.is_none() {
+        ws.x = x;
+        ws.xbar = xbar;
+    }
+    Ok(up)
 }
 
 /// Writes an update's moments and adds its `ln N(x; x̂, S)` to the stats (`linear_update`
@@ -474,6 +497,7 @@ fn linear_update(
     u: &mut Vec<f64>,
     b: &mut Vec<f64>,
     frame: usize,
+    parallel: bool,
     out: &mut Update,
 ) -> Result<()> {
     let ns = mbar.len();
@@ -485,11 +509,18 @@ fn linear_update(
     for i in 0..m2 {
         gram[i * m2 + i] = 1.0;
     }
-    add_gram_rows(ytil, m2, np, gram);
+    add_gram_rows(ytil, m2, np, gram, parallel);
     symmetrize_slice(gram, m2);
     if !cholesky_in_place(gram, m2) {
-        // (never seen: M ⪰ I; the allocating path with its jitter and error message)
-        let lm = cholesky(&gram.clone(), m2, &|| format!("I + ỸᵀỸ of frame {frame}"))?;
+        // (never seen: M ⪰ I) the failed factorisation overwrote part of `gram`: rebuild M,
+        // then the allocating path with its jitter and error message
+        gram.fill(0.0);
+        for i in 0..m2 {
+            gram[i * m2 + i] = 1.0;
+        }
+        add_gram_rows(ytil, m2, np, gram, parallel);
+        symmetrize_slice(gram, m2);
+        let lm = cholesky(gram, m2, &|| format!("I + ỸᵀỸ of frame {frame}"))?;
         gram.copy_from_slice(lm.as_slice());
     }
     let lm: &[f64] = gram;
@@ -520,10 +551,19 @@ fn linear_update(
             u[r * m2 + c] = l_full[c * ns + r];
         }
     }
-    lower_solve_in_place(lm, m2, u);
+    // (columns independent: split between two threads when large)
+    if parallel && m2 * m2 * ns > 400_000 {
+        let (u0, u1) = u.split_at_mut(ns / 2 * m2);
+        rayon::join(
+            || lower_solve_in_place(lm, m2, u0),
+            || lower_solve_in_place(lm, m2, u1),
+        );
+    } else {
+        lower_solve_in_place(lm, m2, u);
+    }
     out.v.clear();
     out.v.resize(ns * ns, 0.0);
-    at_a_into(u, m2, ns, &mut out.v);
+    at_a_into(u, m2, ns, &mut out.v, parallel);
     if ns > n {
         // + L̃[:, n:] L̃[:, n:]ᵀ
         add_a_at(&l_full[n * ns..], ns, ns - n, &mut out.v);
@@ -545,7 +585,20 @@ fn fresh_update(
     let mut up = Update::default();
     let (ytil, gram, u, b) = (&ws.ytil, &mut ws.gram, &mut ws.u, &mut ws.b);
     let l = l_full.as_slice();
-    linear_update(mbar, l, n, ytil, nu.as_slice(), gram, u, b, frame, &mut up)?;
+    let par = !ws.serial;
+    linear_update(
+        mbar,
+        l,
+        n,
+        ytil,
+        nu.as_slice(),
+        gram,
+        u,
+        b,
+        frame,
+        par,
+        &mut up,
+    )?;
     Ok(up)
 }
 
@@ -660,7 +713,7 @@ fn relinearized<E: Emission + ?Sized>(
     for _ in 0..max_iter {
         let cur = best.as_ref().unwrap_or(first);
         let lin = (ws.ytil.as_slice(), ws.used.as_slice());
-        let mean_err = linearisation_error(em, cur, &xhat, vx_eff, &mut gx, lin)?;
+        let mean_err = linearisation_error(em, cur, &xhat, vx_eff, &mut gx, lin, ws.serial)?;
         if mean_err.is_nan() || mean_err <= RELIN_THRESHOLD {
             break; // NaN: a marker is no longer predictable; keep what we have
         }
@@ -687,10 +740,11 @@ fn linearisation_error<E: Emission + ?Sized>(
     vx_eff: &[f64],
     gx: &mut [f64],
     (ytil, used): (&[f64], &[usize]),
+    serial: bool,
 ) -> Result<f64> {
     let n = em.n_state();
     let np = used.len();
-    em.eval_batch(&up.mu[..n], gx)?;
+    eval(em, serial, &up.mu[..n], gx)?;
     let mut err = 0.0;
     for (q, &j) in used.iter().enumerate() {
         let lin: f64 = (0..n).map(|i| ytil[i * np + q] * up.s[i]).sum();
@@ -727,7 +781,7 @@ fn linearize_about<E: Emission + ?Sized>(
         return Ok(None);
     };
     sigma_points(mu_j.as_slice(), &lj, &mut ws.sigma);
-    em.eval_batch(&ws.sigma, &mut ws.x)?;
+    eval(em, ws.serial, &ws.sigma, &mut ws.x)?;
     let inv = 1.0 / m2 as f64;
     ws.xbar.fill(0.0);
     for row in ws.x.chunks_exact(n_x) {

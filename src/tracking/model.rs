@@ -2,7 +2,7 @@
 //! of Alg. 10 (eq. 50), and a linear map (for the golden test against the Kalman filter).
 
 use crate::camera::Camera;
-use crate::emission::emission_batch_into;
+use crate::emission::{emission_batch_into, emission_batch_serial_into};
 use crate::error::{ensure_len, AcmError, Result};
 use crate::limits::StateMap;
 use crate::normalization::Normalization;
@@ -20,6 +20,15 @@ pub trait Emission: Send + Sync {
     /// # Errors
     /// Shape errors, or non-finite states.
     fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()>;
+    /// [`Self::eval_batch`] on the calling thread alone, without handing work to a thread
+    /// pool (the online tracker's serial mode). The default is `eval_batch`, for emissions
+    /// without parallelism of their own.
+    ///
+    /// # Errors
+    /// As [`Self::eval_batch`].
+    fn eval_batch_serial(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
+        self.eval_batch(states, out)
+    }
     /// Entries are grouped in consecutive blocks of this size for the innovation gate
     /// (2 for image points `(u, v)`).
     fn block(&self) -> usize {
@@ -80,6 +89,16 @@ impl Emission for SkeletonEmission {
     }
     fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
         emission_batch_into(
+            &self.skeleton,
+            &self.cameras,
+            &self.map,
+            &self.norm,
+            states,
+            out,
+        )
+    }
+    fn eval_batch_serial(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
+        emission_batch_serial_into(
             &self.skeleton,
             &self.cameras,
             &self.map,

@@ -130,10 +130,22 @@ impl<E: Emission> OnlineTracker<E> {
     pub fn mask(&self) -> &[u8] {
         &self.mask
     }
+    /// Serial mode: every step runs on the calling thread alone (the sigma points and the
+    /// Gram product are not handed to rayon's pool). From a thread outside the pool (e.g.
+    /// Python's), each hand-off pushes a job on rayon's queue, which allocates a block every
+    /// 63 jobs and wakes a worker; in serial mode a step allocates nothing at all.
+    pub fn set_serial(&mut self, serial: bool) {
+        self.ws.serial = serial;
+    }
+    /// Whether [`Self::set_serial`] is on.
+    pub fn serial(&self) -> bool {
+        self.ws.serial
+    }
 
     /// One step of Alg. 6 with the measurement `x_t` (`n_x`, NaN = missing). Once the first
-    /// frame has sized the buffers, a step whose update holds without relinearisation
-    /// allocates nothing (`tests/no_alloc.rs`).
+    /// frames have sized the buffers, a step whose update holds without relinearisation
+    /// allocates nothing in serial mode or on a worker of rayon's pool (`tests/no_alloc.rs`;
+    /// see [`Self::set_serial`] for calls from other threads).
     ///
     /// # Errors
     /// Shape error; ±inf; numerical errors of the step (the state is then unchanged).

@@ -484,6 +484,61 @@ fn a_hint_linearises_where_the_prior_is_too_broad() {
     assert!(err < 0.01, "hinted posterior {m:?}");
 }
 
+/// [`ExpEmission`] whose first three entries are unpredictable beyond |z| > 3 and the last
+/// beyond |z| > 6.
+#[derive(Debug, Clone)]
+struct PartlyLimitedEmission;
+impl Emission for PartlyLimitedEmission {
+    fn n_state(&self) -> usize {
+        2
+    }
+    fn n_meas(&self) -> usize {
+        4
+    }
+    fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
+        ExpEmission.eval_batch(states, out)?;
+        for (z, o) in states.chunks_exact(2).zip(out.chunks_exact_mut(4)) {
+            let far = z.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
+            if far > 3.0 {
+                o[..3].fill(f64::NAN);
+            }
+            if far > 6.0 {
+                o[3] = f64::NAN;
+            }
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn a_hint_that_fails_leaves_the_plain_update() {
+    // Prior N(0, 9 I): its sigma points (±√2 · 3) predict only the last entry, so the prior
+    // counts as too broad and the hint is tried; the hint (near z = 10) predicts nothing, so
+    // its linearisation fails after evaluating its own sigma points. The frame must then get
+    // the plain update of the prior, exactly as without a hint.
+    let mut x = vec![0.0; 4];
+    ExpEmission.eval_batch(&[0.4, -0.3], &mut x).unwrap();
+    let p = Params {
+        mu0: vec![0.0, 0.0],
+        v0: vec![9.0, 0.0, 0.0, 9.0],
+        vz: vec![1e-9, 0.0, 0.0, 1e-9],
+        vx: vec![1e-2; 4],
+    };
+    let mut plain = Tracker::new(PartlyLimitedEmission, x.clone()).unwrap();
+    let s0 = plain.filter(&p, None).unwrap();
+    assert_eq!((s0.used, s0.invisible), (1, 3));
+    let mut tr = Tracker::new(PartlyLimitedEmission, x).unwrap();
+    let hint_m = vec![0.0, 0.0, 10.0, 10.0];
+    let hint_c = vec![1.0, 0.0, 0.0, 1.0, 0.1, 0.0, 0.0, 0.1];
+    tr.set_linearization_hint(Some((hint_m, hint_c))).unwrap();
+    let s1 = tr.filter(&p, None).unwrap();
+    assert_eq!((s1.used, s1.invisible, s1.relinearized_frames), (1, 3, 0));
+    assert!(tr.means().iter().all(|v| v.is_finite()));
+    assert_eq!(tr.means(), plain.means());
+    assert_eq!(tr.covs(), plain.covs());
+    assert_eq!(tr.mask(), plain.mask());
+}
+
 #[test]
 fn online_tracker_equals_the_offline_filter_and_fixed_lag_smoother() {
     let (em, x, p, n, n_x, t_len) = linear_problem(13);

@@ -50,6 +50,11 @@ class OnlineTracker:
         erred 3.5 mm (mean joint error; 0.57 mm on the recording it was learned on), with
         ``s = 0.8`` 0.95 mm (0.73 mm in-sample), with the diagonal 0.94 mm (0.82 mm)
         (``docs/tracking.md``). 0 uses the learned ``V_z`` as it is.
+    serial : bool
+        Run each step on the calling thread alone instead of handing the sigma points to
+        the thread pool: no allocation at all per frame and no other thread woken (the
+        parallel step allocates a small block of the pool's job queue every ~60 frames).
+        Slower per frame on the rat, steadier (``benches/README.md``, online tracker).
 
     The prior of the first frame is the single-frame fit of the first frame with enough
     detections (sec. 4.7) with the learned ``V0``; frames before it return NaN.
@@ -69,6 +74,7 @@ class OnlineTracker:
         joint_limits: bool = True,
         relinearize: int = 10,
         vz_shrinkage: float = 0.8,
+        serial: bool = False,
     ) -> None:
         if motion not in ("random_walk", "velocity"):
             raise ValueError(f"motion must be 'random_walk' or 'velocity', got {motion!r}")
@@ -89,6 +95,7 @@ class OnlineTracker:
         self.order = MOTION_ORDER[motion]
         self.lag, self.pcutoff, self.gate = int(lag), float(pcutoff), gate
         self.joint_limits, self.relinearize = bool(joint_limits), int(relinearize)
+        self.serial = bool(serial)
         self._sm = StateMap(skeleton, normalization, joint_limits)
         ns = self.order * self._sm.n_state
         if self.params["mu0"].shape != (ns,):
@@ -135,6 +142,7 @@ class OnlineTracker:
             np.ascontiguousarray(lim[..., 1]), self.norm._tuple(), self.joint_limits,
             mu0, p["V0"], p["Vz"], p["Vx_diag"], order=self.order,
             gate=gate_threshold(self.gate), relinearize=self.relinearize, lag=self.lag,
+            serial=self.serial,
         )  # fmt: skip
         return True
 
