@@ -7,7 +7,7 @@ compares the filtered and fixed-lag poses with the offline smoother of that reco
 the same Θ (the fixed-lag window over the whole recording) and with Θ learned on it by EM; and
 the lag alone (Θ of that recording in the online tracker).
 
-    python benches/bench_online.py [--frames 600] [--lag 10] [--motion random_walk] [--serial]
+    python benches/bench_online.py [--frames 600] [--lag 10] [--motion random_walk] [--parallel]
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lag", type=int, default=10, help="fixed lag (frames)")
     ap.add_argument("--motion", default="random_walk", choices=["random_walk", "velocity"])
     ap.add_argument(
-        "--serial",
+        "--parallel",
         action="store_true",
-        help="OnlineTracker(serial=True): each step on the calling thread alone",
+        help="OnlineTracker(serial=False): the steps shared with the thread pool",
     )
     args = ap.parse_args(argv)
     sk = datasets.individual_skeleton(models.rat(), seed=1)
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     det, lik, truth = recording(sk, rig, args.frames, 7)
     for lag in (0, args.lag):
-        online = acm_rs.OnlineTracker.from_result(learned, lag=lag, serial=args.serial)
+        online = acm_rs.OnlineTracker.from_result(learned, lag=lag, serial=not args.parallel)
         filt = np.full_like(truth, np.nan)
         lagged = np.full_like(truth, np.nan)
         times = []

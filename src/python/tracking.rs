@@ -512,7 +512,7 @@ impl PyOnlineTracker {
 impl PyOnlineTracker {
     /// Parameters `mu0, v0, vz` of the state of size `order × n_state`, `vx` the diagonal.
     #[new]
-    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, mu0, v0, vz, vx, order=1, gate=None, relinearize=DEFAULT_RELINEARIZE, lag=0, serial=false))]
+    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, mu0, v0, vz, vx, order=1, gate=None, relinearize=DEFAULT_RELINEARIZE, lag=0, serial=true))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         skeleton: &PySkeleton,

@@ -51,10 +51,12 @@ class OnlineTracker:
         ``s = 0.8`` 0.95 mm (0.73 mm in-sample), with the diagonal 0.94 mm (0.82 mm)
         (``docs/tracking.md``). 0 uses the learned ``V_z`` as it is.
     serial : bool
-        Run each step on the calling thread alone instead of handing the sigma points to
-        the thread pool: no allocation at all per frame and no other thread woken (the
-        parallel step allocates a small block of the pool's job queue every ~60 frames).
-        Slower per frame on the rat, steadier (``benches/README.md``, online tracker).
+        True (default): each step runs on the calling thread alone: no allocation at all
+        per frame, no other thread woken, the other cores free for the 2D network. False:
+        the sigma points and Gram products are shared with the thread pool (which
+        allocates a small block of its job queue every ~60 frames). On the rat with 4
+        cameras both took the same time (p99 0.69-1.02 ms serial, 0.74-1.07 ms parallel;
+        ``benches/README.md``, online tracker).
 
     The prior of the first frame is the single-frame fit of the first frame with enough
     detections (sec. 4.7) with the learned ``V0``; frames before it return NaN.
@@ -74,7 +76,7 @@ class OnlineTracker:
         joint_limits: bool = True,
         relinearize: int = 10,
         vz_shrinkage: float = 0.8,
-        serial: bool = False,
+        serial: bool = True,
     ) -> None:
         if motion not in ("random_walk", "velocity"):
             raise ValueError(f"motion must be 'random_walk' or 'velocity', got {motion!r}")
