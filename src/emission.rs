@@ -241,42 +241,18 @@ pub fn emission_batch(
     let ns = map.n_state().max(1);
     let block = cameras.len() * skeleton.n_markers() * 2;
     let mut out = vec![0.0; (states.len() / ns) * block];
-    emission_batch_into(skeleton, cameras, map, norm, states, &mut out)?;
+    emission_batch_into(skeleton, cameras, map, norm, states, &mut out, true)?;
     Ok(out)
 }
 
-/// Like [`emission_batch`], writing into a caller-provided `(N, n_cams · M · 2)` buffer.
+/// Like [`emission_batch`], writing into a caller-provided `(N, n_cams · M · 2)` buffer;
+/// the states shared among rayon's threads if `parallel`, else all on the calling thread
+/// (no hand-off to the pool: nothing is allocated once the thread's scratch is sized, and
+/// no other thread is woken). The same values either way.
 ///
 /// # Errors
 /// As [`emission_batch`], plus a shape error for a wrong buffer size.
 pub fn emission_batch_into(
-    skeleton: &Skeleton,
-    cameras: &[Camera],
-    map: &StateMap,
-    norm: &Normalization,
-    states: &[f64],
-    out: &mut [f64],
-) -> Result<()> {
-    emission_batch_impl(skeleton, cameras, map, norm, states, out, true)
-}
-
-/// [`emission_batch_into`] on the calling thread alone (no hand-off to rayon's pool: nothing
-/// is allocated once the thread's scratch is sized, and no other thread is woken).
-///
-/// # Errors
-/// As [`emission_batch_into`].
-pub fn emission_batch_serial_into(
-    skeleton: &Skeleton,
-    cameras: &[Camera],
-    map: &StateMap,
-    norm: &Normalization,
-    states: &[f64],
-    out: &mut [f64],
-) -> Result<()> {
-    emission_batch_impl(skeleton, cameras, map, norm, states, out, false)
-}
-
-fn emission_batch_impl(
     skeleton: &Skeleton,
     cameras: &[Camera],
     map: &StateMap,

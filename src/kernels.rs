@@ -74,9 +74,7 @@ dispatch!(
         }
         let mut quads = b.chunks_exact_mut(4 * n);
         for quad in &mut quads {
-            let (c0, rest) = quad.split_at_mut(n);
-            let (c1, rest) = rest.split_at_mut(n);
-            let (c2, c3) = rest.split_at_mut(n);
+            let [c0, c1, c2, c3] = four_columns(quad, n);
             for j in 0..n {
                 let lj = &l[j * n..(j + 1) * n];
                 let d = lj[j];
@@ -122,9 +120,7 @@ dispatch!(
         }
         let mut quads = b.chunks_exact_mut(4 * n);
         for quad in &mut quads {
-            let (c0, rest) = quad.split_at_mut(n);
-            let (c1, rest) = rest.split_at_mut(n);
-            let (c2, c3) = rest.split_at_mut(n);
+            let [c0, c1, c2, c3] = four_columns(quad, n);
             for r in (0..n).rev() {
                 let lr = &l[r * n..(r + 1) * n];
                 let t = r + 1;
@@ -283,6 +279,15 @@ pub fn dot(a: &[f64], b: &[f64]) -> f64 {
         s += x * y;
     }
     s
+}
+
+/// The four columns of length `n` of `quad` (`4n` values).
+#[inline(always)]
+fn four_columns(quad: &mut [f64], n: usize) -> [&mut [f64]; 4] {
+    let (c0, rest) = quad.split_at_mut(n);
+    let (c1, rest) = rest.split_at_mut(n);
+    let (c2, c3) = rest.split_at_mut(n);
+    [c0, c1, c2, c3]
 }
 
 /// [`dot`] of `a` with four vectors at once (each `a` element loaded once), every result

@@ -2,7 +2,7 @@
 //! of Alg. 10 (eq. 50), and a linear map (for the golden test against the Kalman filter).
 
 use crate::camera::Camera;
-use crate::emission::{emission_batch_into, emission_batch_serial_into};
+use crate::emission::emission_batch_into;
 use crate::error::{ensure_len, AcmError, Result};
 use crate::limits::StateMap;
 use crate::normalization::Normalization;
@@ -88,24 +88,12 @@ impl Emission for SkeletonEmission {
         2 * self.cameras.len() * self.skeleton.n_markers()
     }
     fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
-        emission_batch_into(
-            &self.skeleton,
-            &self.cameras,
-            &self.map,
-            &self.norm,
-            states,
-            out,
-        )
+        let (sk, cams, map, norm) = (&self.skeleton, &self.cameras, &self.map, &self.norm);
+        emission_batch_into(sk, cams, map, norm, states, out, true)
     }
     fn eval_batch_serial(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
-        emission_batch_serial_into(
-            &self.skeleton,
-            &self.cameras,
-            &self.map,
-            &self.norm,
-            states,
-            out,
-        )
+        let (sk, cams, map, norm) = (&self.skeleton, &self.cameras, &self.map, &self.norm);
+        emission_batch_into(sk, cams, map, norm, states, out, false)
     }
     fn block(&self) -> usize {
         2
