@@ -56,6 +56,26 @@ def test_windows_share_vz_and_vx(case):
     assert fit.history and fit.history[-1]["used"] > 0
 
 
+def test_windows_learn_the_velocity_state(case):
+    # the velocity EM on windows after the random walk's (whose trackers are released once
+    # the velocity trackers hold their hints): the position-velocity Θ, the random walk's Θ
+    # and window prior for the hints, and the typical error from the random walk's means
+    m = case["model"]
+    wins = L.subset_windows(N, 300, 2)
+    dets = [m.detections(case["det"][:, a:b], case["lik"][:, a:b]) for a, b in wins]
+    fit = L.learn_windows(case["rig"], case["sk"], dets, m.norm, motion="velocity",
+                          windows=wins, max_iter=30)  # fmt: skip
+    n = m.prior_cov.shape[0]
+    assert fit.motion == "velocity" and fit.params["mu0"].shape == (2 * n,)
+    assert fit.prior_cov.shape == (2 * n, 2 * n)
+    assert np.all(np.linalg.eigvalsh(fit.prior_cov) > 0)
+    assert fit.extra["rw_params"]["Vz"].shape == (n, n)
+    assert fit.extra["rw_prior_cov"].shape == (n, n)
+    assert [h["motion"] for h in fit.history].count("velocity") >= 1
+    # a typical frame of the smoothed random walk reprojects within a few pixels (2 px noise)
+    assert 0.5 < fit.extra["typical_px"] < 10.0
+
+
 def test_windows_covering_the_recording_reproduce_it_exactly(case, tmp_path):
     # cores, offsets and the writer: with a burn-in that spans the recording every window is
     # the whole recording, so the stitched file must equal the single window bit for bit

@@ -278,6 +278,8 @@ def learn_windows(
             history = history + [h | {"motion": "random_walk", "windows": len(rw)} for h in more]
         used, note, final = "random_walk", "", rw
         rw_params = params
+        # what is needed of the random walk's trackers later: their smoothed means
+        rw_means = [tr.means() for tr in rw]
         if MOTION_ORDER[motion] == 2:
             vinit, d2s = [], []
             for tr, p in zip(rw, params, strict=True):
@@ -291,6 +293,10 @@ def learn_windows(
             vel = trackers(2, keep)
             for tv, tr in zip(vel, rw, strict=True):
                 tv.set_linearization_hint(tr.means(), tr.covs())
+            # the hints hold the random walk's moments now: its trackers' memory (~46 MB per
+            # 2,000-frame window) is released before the velocity EM
+            del tr
+            rw = final = []
             left = max(1, max_iter - len(history))
             vparams, more, vconv = _em_windows(vel, vinit, left, ll_tol, gate_thr, pool, printer)
             for h in more:
@@ -312,8 +318,7 @@ def learn_windows(
     probe = _Model(rig, skeleton, norm, joint_limits, relinearize, None, 1, {}, np.zeros((0, 0)),
                    0.9)  # fmt: skip
     per_frame = np.concatenate([
-        frame_px(probe, sm, tr.means()[1:], windows_det[k])
-        for k, tr in zip(keep, rw, strict=True)
+        frame_px(probe, sm, m[1:], windows_det[k]) for k, m in zip(keep, rw_means, strict=True)
     ])  # fmt: skip
     typical_px = float(np.nanmedian(per_frame)) if np.isfinite(per_frame).any() else math.nan
     first, rw_first = params[0], rw_params[0]
@@ -325,7 +330,7 @@ def learn_windows(
         extra = {
             "rw_params": {"mu0": rw_first[0], "V0": rw_first[1], "Vz": rw_first[2],
                           "Vx_diag": rw_first[3]},
-            "rw_prior_cov": _window_prior_cov(rw_params, rw, n, 1),
+            "rw_prior_cov": _window_prior_cov(rw_params, [], n, 1),
         }  # fmt: skip
     extra |= {"window_fit_px": fit_px, "dropped_windows": dropped, "typical_px": typical_px}
     return SubsetFit(
