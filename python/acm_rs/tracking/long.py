@@ -766,10 +766,10 @@ def track_long(
         Frames per segment (streaming) or per core (chunked).
     poor_fit : float or None
         The forward pass of both methods (``"chunked"`` starts from its checkpoints):
-        stretches of 50+ frames whose filtered poses reproject further than this multiple of
-        a typical frame's error (the EM windows') start a new sequence from a fresh
-        single-frame fit; the streaming smoother also reports them (``info["poor_fit"]``, a
-        warning). None: neither.
+        stretches of 10+ frames (``POOR_FRAMES``) whose filtered poses reproject further
+        than this multiple of a typical frame's error (the EM windows') start a new sequence
+        from a fresh single-frame fit (so do 50+ frames with > 5 % of the entries gated);
+        both report them (``info["poor_fit"]``, a warning). None: neither.
     burn_in, tol : int, float or None
         Chunked only: burn-in (after each chunk; with ``starts="fresh"`` on each side), and
         the largest seam difference in posterior SDs before the burn-in is doubled (None:
