@@ -198,6 +198,9 @@ def test_bad_inputs_are_refused(case, tmp_path):
         L._Source(case["det"], case["lik"][:, :10])
     with pytest.raises(ValueError, match="chunk and burn_in"):
         _smooth(case, tmp_path / "x.h5", chunk=0)
+    with pytest.raises(TypeError, match="starts='checkpoints' only"):
+        _smooth(case, tmp_path / "x.h5", poor_fit=3.0)  # (starts="fresh")
+    assert not (tmp_path / "x.h5").exists()
 
 
 def test_command_line_with_memory_mapped_input(case, tmp_path):

@@ -427,10 +427,12 @@ fn relinearisation_recovers_from_a_broad_prior() {
     );
 }
 
-/// [`ExpEmission`] that cannot predict anything beyond |z| > 3 (like a marker behind a
-/// camera).
+/// [`ExpEmission`] whose first three entries are unpredictable beyond |z| > 3 (like a marker
+/// behind a camera) and the last beyond |z| > `last_beyond`.
 #[derive(Debug, Clone)]
-struct LimitedEmission;
+struct LimitedEmission {
+    last_beyond: f64,
+}
 impl Emission for LimitedEmission {
     fn n_state(&self) -> usize {
         2
@@ -441,8 +443,12 @@ impl Emission for LimitedEmission {
     fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
         ExpEmission.eval_batch(states, out)?;
         for (z, o) in states.chunks_exact(2).zip(out.chunks_exact_mut(4)) {
-            if z.iter().any(|v| v.abs() > 3.0) {
-                o.fill(f64::NAN);
+            let far = z.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
+            if far > 3.0 {
+                o[..3].fill(f64::NAN);
+            }
+            if far > self.last_beyond {
+                o[3] = f64::NAN;
             }
         }
         Ok(())
@@ -463,7 +469,7 @@ fn a_hint_linearises_where_the_prior_is_too_broad() {
         vz: vec![1e-9, 0.0, 0.0, 1e-9],
         vx: vec![1e-4; 4],
     };
-    let mut tr = Tracker::new(LimitedEmission, x.clone()).unwrap();
+    let mut tr = Tracker::new(LimitedEmission { last_beyond: 3.0 }, x.clone()).unwrap();
     let plain = tr.filter(&p, None).unwrap();
     assert_eq!((plain.used, plain.invisible), (0, 4));
     assert!(tr.means()[2..4].iter().all(|v| v.abs() < 1e-6));
@@ -484,32 +490,6 @@ fn a_hint_linearises_where_the_prior_is_too_broad() {
     assert!(err < 0.01, "hinted posterior {m:?}");
 }
 
-/// [`ExpEmission`] whose first three entries are unpredictable beyond |z| > 3 and the last
-/// beyond |z| > 6.
-#[derive(Debug, Clone)]
-struct PartlyLimitedEmission;
-impl Emission for PartlyLimitedEmission {
-    fn n_state(&self) -> usize {
-        2
-    }
-    fn n_meas(&self) -> usize {
-        4
-    }
-    fn eval_batch(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
-        ExpEmission.eval_batch(states, out)?;
-        for (z, o) in states.chunks_exact(2).zip(out.chunks_exact_mut(4)) {
-            let far = z.iter().fold(0.0_f64, |a, v| a.max(v.abs()));
-            if far > 3.0 {
-                o[..3].fill(f64::NAN);
-            }
-            if far > 6.0 {
-                o[3] = f64::NAN;
-            }
-        }
-        Ok(())
-    }
-}
-
 #[test]
 fn a_hint_that_fails_leaves_the_plain_update() {
     // Prior N(0, 9 I): its sigma points (±√2 · 3) predict only the last entry, so the prior
@@ -524,10 +504,10 @@ fn a_hint_that_fails_leaves_the_plain_update() {
         vz: vec![1e-9, 0.0, 0.0, 1e-9],
         vx: vec![1e-2; 4],
     };
-    let mut plain = Tracker::new(PartlyLimitedEmission, x.clone()).unwrap();
+    let mut plain = Tracker::new(LimitedEmission { last_beyond: 6.0 }, x.clone()).unwrap();
     let s0 = plain.filter(&p, None).unwrap();
     assert_eq!((s0.used, s0.invisible), (1, 3));
-    let mut tr = Tracker::new(PartlyLimitedEmission, x).unwrap();
+    let mut tr = Tracker::new(LimitedEmission { last_beyond: 6.0 }, x).unwrap();
     let hint_m = vec![0.0, 0.0, 10.0, 10.0];
     let hint_c = vec![1.0, 0.0, 0.0, 1.0, 0.1, 0.0, 0.0, 0.1];
     tr.set_linearization_hint(Some((hint_m, hint_c))).unwrap();
