@@ -6,14 +6,22 @@
 //!   order) and starts at that joint's parent.
 //! * Each bone has a rest orientation `R̄_b` (columns = bone axes in world coordinates) whose
 //!   z-axis points along the bone, a length `l_b`, and a Rodrigues vector `r_b`.
-//! * Alg. 1: the rotation of bone `i` acts on every bone whose end joint is a descendant of
-//!   `i`'s start joint (so also on the bones that share `i`'s start joint). Rotations are
-//!   applied root→leaf through transposes (eq. 8), i.e. the global orientation of bone `j` is
-//!   `R_j = Q_{a1} Q_{a2} … Q_{ak} R̄_j` with `Q = f_{r→R}(r)` over the acting bones in bone
-//!   order. Among bones that share a start joint, the lower index is applied first (outermost).
+//! * Which bones a rotation moves (the authors' `skeleton_vertices_links`): by default the
+//!   **tree rule**: the rotation of bone `i` moves bone `i` and its descendants, never its
+//!   siblings, so `R_b = Q_{a1} Q_{a2} … Q_b R̄_b` over the bones on the path from the root
+//!   to `b` (`Q = f_{r→R}(r)`, eq. 8). This is how the authors' published output moves (see
+//!   `docs/models.md`); Alg. 1's line "if j₁ is child of i₀", read literally, would also turn
+//!   the siblings that share `i`'s start joint. Any other link matrix (e.g. from an ACM
+//!   `model.npy`) can be set with [`Skeleton::with_links`]: then
+//!   `R_b = Π_{i: links[i, b]} Q_i R̄_b` in a given application order, as the authors'
+//!   `adjust_joint_marker_pos2` composes them.
 //! * A marker attached to joint `j` moves rigidly with the bone that ends at `j`:
 //!   `m = p_j + R_b v` (Alg. 1, line 15). Markers attached to the root move with the global
 //!   translation and the first bone that starts at the root.
+//! * Derivatives: `∂R_b/∂r_ik = [w_ibk]× R_b` with the world axis `w_ibk = A_ib J_l(r_i) e_k`,
+//!   where `A_ib` is the product of the rotations applied to `b` before `Q_i` and `J_l` the
+//!   left Jacobian of SO(3); a point moves by `w × s` for every segment `s` of its chain
+//!   (`l_b R_b e_z`) and its offset (`R_b v`).
 
 use crate::error::{ensure_finite, ensure_len, AcmError, Result};
 use crate::rotation::{left_jacobian, rodrigues};
@@ -33,12 +41,21 @@ pub struct Skeleton {
     offsets: Vec<Vector3<f64>>,
     // Derived structure.
     order: Vec<usize>,
-    out_bones: Vec<Vec<usize>>,
     marker_bone: Vec<usize>,
     /// Whether any marker is expressed in the frame of each bone.
     bone_has_marker: Vec<bool>,
     /// `anc[a * J + b]`: joint `a` is an ancestor of joint `b` or `a == b`.
     anc: Vec<bool>,
+    /// A link matrix set by [`Skeleton::with_links`] (row-major `n_bones × n_bones`, `[i, b]`:
+    /// the rotation of bone `i` moves bone `b`) and the order the rotations apply in;
+    /// `None`: the tree rule.
+    custom_links: Option<(Vec<bool>, Vec<usize>)>,
+    /// The bones whose rotation acts on each bone, in application order.
+    acting: Vec<Vec<usize>>,
+    /// How the bone orientations are formed: `(b, base, from)` sets
+    /// `G_b = G_base · Π acting[b][from..]` (base: a bone whose acting list is a prefix of
+    /// `b`'s, evaluated earlier in the plan).
+    plan: Vec<(usize, Option<usize>, usize)>,
 }
 
 /// Joint and marker positions of one frame plus the bone orientations they came from.
@@ -48,17 +65,17 @@ pub struct FkResult {
     pub joints: Vec<Vector3<f64>>,
     /// Marker positions `m` (M).
     pub markers: Vec<Vector3<f64>>,
-    /// Global bone orientations `R_b = P_{start(b)} R̄_b` (n_bones).
+    /// Global bone orientations `R_b = G_b R̄_b` (n_bones).
     pub bone_rotations: Vec<Matrix3<f64>>,
-    /// Accumulated rotation `P_a` at each joint (product of the rotations of every bone that
-    /// starts at `a` or at one of its ancestors).
-    joint_rotations: Vec<Matrix3<f64>>,
 }
 
 /// Per-thread scratch space of forward kinematics (see [`Skeleton::workspace`]).
 #[derive(Debug, Clone)]
 pub struct FkWorkspace {
-    joint_rot: Vec<Matrix3<f64>>,
+    /// `Q_i = f_{r→R}(r_i)` of each bone.
+    q: Vec<Matrix3<f64>>,
+    /// `G_b`: the product of the rotations acting on bone `b`.
+    g: Vec<Matrix3<f64>>,
     bone_rot: Vec<Matrix3<f64>>,
     joints: Vec<Vector3<f64>>,
 }
@@ -66,7 +83,8 @@ pub struct FkWorkspace {
 impl FkWorkspace {
     /// Whether this workspace has the sizes of `skeleton`'s ([`Skeleton::workspace`]).
     pub fn fits(&self, skeleton: &Skeleton) -> bool {
-        self.joint_rot.len() == skeleton.n_joints()
+        self.q.len() == skeleton.n_bones()
+            && self.g.len() == skeleton.n_bones()
             && self.joints.len() == skeleton.n_joints()
             && self.bone_rot.len() == skeleton.n_bones()
     }
@@ -168,11 +186,10 @@ impl Skeleton {
             check_rotation(f, &format!("rest frame of bone {b}"))?;
         }
         validate_lengths(&lengths)?;
-        let mut out_bones = vec![Vec::new(); n_j];
-        for (b, &(s, _)) in bones.iter().enumerate() {
-            out_bones[s].push(b);
-        }
-        let first_root_bone = out_bones[root][0];
+        let first_root_bone = bones
+            .iter()
+            .position(|&(s, _)| s == root)
+            .expect("the root of a validated tree has a bone");
         let mut marker_bone = Vec::with_capacity(marker_joints.len());
         for (k, &j) in marker_joints.iter().enumerate() {
             if j >= n_j {
@@ -197,7 +214,7 @@ impl Skeleton {
         for &b in &marker_bone {
             bone_has_marker[b] = true;
         }
-        Ok(Self {
+        let mut sk = Self {
             parents,
             root,
             bones,
@@ -207,11 +224,100 @@ impl Skeleton {
             marker_joints,
             offsets,
             order,
-            out_bones,
             marker_bone,
             bone_has_marker,
             anc,
-        })
+            custom_links: None,
+            acting: Vec::new(),
+            plan: Vec::new(),
+        };
+        sk.set_tree_links();
+        Ok(sk)
+    }
+
+    /// The tree rule: bone `b` is turned by the bones on the path from the root to `b`,
+    /// root first; `G_b = G_{parent bone} Q_b`.
+    fn set_tree_links(&mut self) {
+        let n_b = self.bones.len();
+        self.custom_links = None;
+        self.acting = vec![Vec::new(); n_b];
+        self.plan = Vec::with_capacity(n_b);
+        for &a in &self.order {
+            let Some(b) = self.bone_of_end[a] else { continue };
+            let base = self.bone_of_end[self.bones[b].0];
+            let mut chain = base.map(|c| self.acting[c].clone()).unwrap_or_default();
+            let from = chain.len();
+            chain.push(b);
+            self.acting[b] = chain;
+            self.plan.push((b, base, from));
+        }
+    }
+
+    /// Uses an explicit link matrix instead of the tree rule, as the authors' forward model
+    /// (`adjust_joint_marker_pos2`) does with a `model.npy`'s `skeleton_vertices_links`:
+    /// `R_b = Π_{i: links[i, b]} Q_i R̄_b`, the product taken in `order`.
+    ///
+    /// # Arguments
+    /// * `links` - row-major `n_bones × n_bones`; `[i, b]`: the rotation of bone `i` moves
+    ///   bone `b`. Any matrix is accepted (a bone that no rotation moves keeps its rest
+    ///   orientation).
+    /// * `order` - the order in which the rotations apply (a permutation of the bones; the
+    ///   authors' file order); `None`: bone index order.
+    ///
+    /// # Errors
+    /// Shape errors for a wrong size; invalid errors for an order that is not a permutation.
+    pub fn with_links(mut self, links: &[bool], order: Option<&[usize]>) -> Result<Self> {
+        let n = self.bones.len();
+        ensure_len(links.len(), n * n, "link matrix (n_bones x n_bones)")?;
+        let order: Vec<usize> = match order {
+            Some(o) => {
+                ensure_len(o.len(), n, "link order (one entry per bone)")?;
+                let mut seen = vec![false; n];
+                for &i in o {
+                    if i >= n || seen[i] {
+                        return Err(AcmError::Invalid(format!(
+                            "link order must be a permutation of the {n} bones; got {o:?}"
+                        )));
+                    }
+                    seen[i] = true;
+                }
+                o.to_vec()
+            }
+            None => (0..n).collect(),
+        };
+        self.acting = (0..n)
+            .map(|b| order.iter().copied().filter(|&i| links[i * n + b]).collect())
+            .collect();
+        // Share prefixes: bones by the length of their acting list, each based on the
+        // longest earlier list that is a prefix of its own.
+        let mut by_len: Vec<usize> = (0..n).collect();
+        by_len.sort_by_key(|&b| self.acting[b].len());
+        self.plan = Vec::with_capacity(n);
+        for (k, &b) in by_len.iter().enumerate() {
+            let base = by_len[..k]
+                .iter()
+                .copied()
+                .filter(|&c| self.acting[b].starts_with(&self.acting[c]))
+                .max_by_key(|&c| self.acting[c].len());
+            let from = base.map_or(0, |c| self.acting[c].len());
+            self.plan.push((b, base, from));
+        }
+        self.custom_links = Some((links.to_vec(), order));
+        Ok(self)
+    }
+
+    /// Goes back to the tree rule (drops a link matrix set by [`Skeleton::with_links`]).
+    pub fn with_tree_links(mut self) -> Self {
+        self.set_tree_links();
+        self
+    }
+
+    /// The link matrix and application order set by [`Skeleton::with_links`]; `None` for
+    /// the tree rule.
+    pub fn custom_links(&self) -> Option<(&[bool], &[usize])> {
+        self.custom_links
+            .as_ref()
+            .map(|(l, o)| (l.as_slice(), o.as_slice()))
     }
 
     /// Builds a skeleton from joint and marker positions of a rest pose (all rotations zero).
@@ -364,16 +470,22 @@ impl Skeleton {
     pub fn is_ancestor_or_self(&self, a: usize, b: usize) -> bool {
         self.anc[a * self.parents.len() + b]
     }
-    /// `[i, j]`: the rotation of bone `i` moves bone `j` (the authors' `skeleton_vertices_links`).
+    /// `[i, j]`: the rotation of bone `i` moves bone `j` (the authors' `skeleton_vertices_links`),
+    /// row-major `n_bones × n_bones`.
     pub fn bone_links(&self) -> Vec<bool> {
         let n = self.bones.len();
         let mut out = vec![false; n * n];
-        for (i, &(si, _)) in self.bones.iter().enumerate() {
-            for (j, &(sj, _)) in self.bones.iter().enumerate() {
-                out[i * n + j] = self.is_ancestor_or_self(si, sj);
+        for (j, acting) in self.acting.iter().enumerate() {
+            for &i in acting {
+                out[i * n + j] = true;
             }
         }
         out
+    }
+
+    /// The bones whose rotation acts on bone `b`, in the order they apply.
+    pub fn acting_bones(&self, b: usize) -> &[usize] {
+        &self.acting[b]
     }
 
     fn check_overrides(
@@ -428,15 +540,16 @@ impl Skeleton {
     /// Scratch space for allocation-free forward kinematics ([`Skeleton::forward_flat_into`]).
     pub fn workspace(&self) -> FkWorkspace {
         FkWorkspace {
-            joint_rot: vec![Matrix3::identity(); self.n_joints()],
+            q: vec![Matrix3::identity(); self.n_bones()],
+            g: vec![Matrix3::identity(); self.n_bones()],
             bone_rot: vec![Matrix3::identity(); self.n_bones()],
             joints: vec![Vector3::zeros(); self.n_joints()],
         }
     }
 
-    /// Alg. 1 core: joint rotations, bone orientations and joint positions into `ws`.
-    /// `r` is flat `(n_bones, 3)`.
-    /// With `full == false` only the orientations of bones that carry markers are formed.
+    /// Alg. 1 core: bone orientations and joint positions into `ws`. `r` is flat
+    /// `(n_bones, 3)`. With `full == false` only the orientations of bones that carry markers
+    /// are formed.
     fn fk_core(
         &self,
         t: &Vector3<f64>,
@@ -445,29 +558,32 @@ impl Skeleton {
         ws: &mut FkWorkspace,
         full: bool,
     ) {
-        ws.joints[self.root] = *t;
-        for &a in &self.order {
-            // Alg. 1 lines 3-6 and eq. 8: P_a = P_parent · Q_{b1} Q_{b2} … over the bones that
-            // start at a, in bone order (root-to-leaf application of the transposes).
-            let mut p = match self.parents[a] {
-                Some(par) => ws.joint_rot[par],
-                None => Matrix3::identity(),
+        for (b, q) in ws.q.iter_mut().enumerate() {
+            let rv = Vector3::new(r[3 * b], r[3 * b + 1], r[3 * b + 2]);
+            *q = if rv == Vector3::zeros() {
+                Matrix3::identity()
+            } else {
+                rodrigues(&rv)
             };
-            for &b in &self.out_bones[a] {
-                let rv = Vector3::new(r[3 * b], r[3 * b + 1], r[3 * b + 2]);
-                if rv != Vector3::zeros() {
-                    p *= rodrigues(&rv);
-                }
+        }
+        // Eq. 8: G_b = Q_{a1} Q_{a2} … over the rotations acting on b (tree rule: the bones
+        // from the root to b), sharing the product of a prefix.
+        for &(b, base, from) in &self.plan {
+            let mut g = base.map_or_else(Matrix3::identity, |c| ws.g[c]);
+            for &i in &self.acting[b][from..] {
+                g *= ws.q[i];
             }
-            ws.joint_rot[a] = p;
-            if let Some(b) = self.bone_of_end[a] {
-                // Alg. 1 lines 8 and 11: R_b = P_start R̄_b, p_end = p_start + R_b e_z l_b.
-                let start = self.bones[b].0;
-                let ps = &ws.joint_rot[start];
-                ws.joints[a] = ws.joints[start] + ps * self.rest_frames[b].column(2) * lengths[b];
-                if full || self.bone_has_marker[b] {
-                    ws.bone_rot[b] = ps * self.rest_frames[b];
-                }
+            ws.g[b] = g;
+        }
+        ws.joints[self.root] = *t;
+        for &a in &self.order[1..] {
+            let b = self.bone_of_end[a].expect("non-root joint has a bone");
+            // Alg. 1 lines 8 and 11: R_b = G_b R̄_b, p_end = p_start + R_b e_z l_b.
+            let start = self.bones[b].0;
+            let gb = &ws.g[b];
+            ws.joints[a] = ws.joints[start] + gb * self.rest_frames[b].column(2) * lengths[b];
+            if full || self.bone_has_marker[b] {
+                ws.bone_rot[b] = gb * self.rest_frames[b];
             }
         }
     }
@@ -529,16 +645,15 @@ impl Skeleton {
             joints: ws.joints,
             markers,
             bone_rotations: ws.bone_rot,
-            joint_rotations: ws.joint_rot,
         }
     }
 
     /// Forward kinematics with exact Jacobians with respect to `t`, `r`, `l` and `v`.
     ///
-    /// The derivative of a point `x` moved by bone `i` with respect to `r_i,k` is
-    /// `w_ik × (x − p_{start(i)})` with the world-frame axis `w_ik = A_i J_l(r_i) e_k`, where
-    /// `A_i` is the accumulated rotation applied before `Q_i` and `J_l` the left Jacobian of
-    /// SO(3) (exact; no finite differences).
+    /// A point moved by bone `i` through bone `b` has `∂x/∂r_ik = Σ w_ibk × s` over the
+    /// segments `s` of its chain that `i` turns (`l_b R_b e_z`, and `R_b v` for a marker's
+    /// offset), with the world axis `w_ibk = A_ib J_l(r_i) e_k` (module docs; exact, no finite
+    /// differences). Under the tree rule this is `w_ik × (x − p_start(i))`.
     ///
     /// # Errors
     /// As [`Skeleton::forward`].
@@ -558,37 +673,33 @@ impl Skeleton {
         let mut d_pose = vec![0.0; rows * cols];
         let mut d_lengths = vec![0.0; rows * n_b];
         let mut d_offsets = vec![0.0; n_m * 9];
-
-        // Translation: identity for every point.
-        for p in 0..(n_j + n_m) {
-            for a in 0..3 {
-                d_pose[(3 * p + a) * cols + a] = 1.0;
-            }
-        }
-        // Which bone's orientation moves each point (None: the root joint, moved only by t).
-        let point_bone: Vec<Option<usize>> = (0..n_j)
-            .map(|j| self.bone_of_end[j])
-            .chain(self.marker_bone.iter().map(|&b| Some(b)))
-            .collect();
-        let point_pos: Vec<&Vector3<f64>> = fk.joints.iter().chain(fk.markers.iter()).collect();
-        // Rotations.
-        let axes = self.rotation_axes(&fk, r);
-        for (i, &(si, _)) in self.bones.iter().enumerate() {
-            let w = axes[i];
-            let pivot = fk.joints[si];
-            for (p, pb) in point_bone.iter().enumerate() {
-                let Some(pb) = pb else { continue };
-                if !self.is_ancestor_or_self(si, self.bones[*pb].0) {
-                    continue;
-                }
-                let rel = point_pos[p] - pivot;
+        let axes = self.rotation_axes(r);
+        // Adds the derivative of a segment `s` of bone `b` to the rows of point `p`.
+        let add_segment = |d_pose: &mut [f64], p: usize, b: usize, s: &Vector3<f64>| {
+            for (&i, w) in self.acting[b].iter().zip(&axes[b]) {
                 for k in 0..3 {
-                    let d = w.column(k).cross(&rel);
+                    let d = w.column(k).cross(s);
                     for a in 0..3 {
-                        d_pose[(3 * p + a) * cols + 3 + 3 * i + k] = d[a];
+                        d_pose[(3 * p + a) * cols + 3 + 3 * i + k] += d[a];
                     }
                 }
             }
+        };
+        // Joints root first: a joint's rows are its start joint's plus its own segment.
+        for a in 0..3 {
+            d_pose[(3 * self.root + a) * cols + a] = 1.0;
+        }
+        for &j in &self.order[1..] {
+            let b = self.bone_of_end[j].expect("non-root joint has a bone");
+            let s = self.bones[b].0;
+            d_pose.copy_within(3 * s * cols..3 * (s + 1) * cols, 3 * j * cols);
+            add_segment(&mut d_pose, j, b, &(fk.joints[j] - fk.joints[s]));
+        }
+        // Markers: their joint's rows plus the offset's segment.
+        for (k, (&j, &b)) in self.marker_joints.iter().zip(&self.marker_bone).enumerate() {
+            let p = n_j + k;
+            d_pose.copy_within(3 * j * cols..3 * (j + 1) * cols, 3 * p * cols);
+            add_segment(&mut d_pose, p, b, &(fk.markers[k] - fk.joints[j]));
         }
         // Bone lengths: points at or below the bone's end joint move along its axis.
         for (b, &(_, eb)) in self.bones.iter().enumerate() {
@@ -622,32 +733,31 @@ impl Skeleton {
         })
     }
 
-    /// World-frame rotation axes of every bone's Rodrigues components: column `k` of entry
-    /// `i` is `w_ik = A_i J_l(r_i) e_k`, so a point `x` moved by bone `i` has
-    /// `∂x/∂r_ik = w_ik × (x − p_start(i))`. `fk` must come from the same `r`.
-    pub fn rotation_axes(&self, fk: &FkResult, r: &[Vector3<f64>]) -> Vec<Matrix3<f64>> {
-        self.bones
+    /// World-frame rotation axes: entry `b` lists, for each bone `i` acting on `b` (in
+    /// [`Skeleton::acting_bones`] order), `W_ib = A_ib J_l(r_i)`, whose column `k` is the axis
+    /// `w_ibk` of `∂R_b/∂r_ik = [w_ibk]× R_b`.
+    pub fn rotation_axes(&self, r: &[Vector3<f64>]) -> Vec<Vec<Matrix3<f64>>> {
+        let q: Vec<Matrix3<f64>> = r.iter().map(rodrigues).collect();
+        let jl: Vec<Matrix3<f64>> = r.iter().map(left_jacobian).collect();
+        self.acting
             .iter()
-            .enumerate()
-            .map(|(i, &(si, _))| {
-                let mut before = match self.parents[si] {
-                    Some(par) => fk.joint_rotations[par],
-                    None => Matrix3::identity(),
-                };
-                for &s in &self.out_bones[si] {
-                    if s == i {
-                        break;
-                    }
-                    before *= rodrigues(&r[s]);
-                }
-                before * left_jacobian(&r[i])
+            .map(|acting| {
+                let mut before = Matrix3::<f64>::identity();
+                acting
+                    .iter()
+                    .map(|&i| {
+                        let w = before * jl[i];
+                        before *= q[i];
+                        w
+                    })
+                    .collect()
             })
             .collect()
     }
 
     /// Vector-Jacobian product of the marker positions: given `g_k = ∂f/∂m_k` for a scalar
     /// `f`, returns `(∂f/∂[t, r] (n_pose), ∂f/∂l (n_bones), ∂f/∂v (M))` exactly, in
-    /// O(n_bones · M) without forming the Jacobian. `fk` must come from `(t, r)` with
+    /// O(Σ_b |acting(b)| + M) without forming the Jacobian. `fk` must come from `(t, r)` with
     /// [`Skeleton::forward_unchecked`] (or `forward`).
     pub fn markers_vjp(
         &self,
@@ -658,32 +768,40 @@ impl Skeleton {
         let mut d_pose = vec![0.0; self.n_pose()];
         let gt: Vector3<f64> = g.iter().sum();
         d_pose[..3].copy_from_slice(gt.as_slice());
-        let axes = self.rotation_axes(fk, r);
-        for (i, &(si, _)) in self.bones.iter().enumerate() {
-            // Σ_k (m_k − p_start) × g_k over the markers bone i moves.
-            let pivot = fk.joints[si];
-            let mut s = Vector3::zeros();
-            for (k, &mb) in self.marker_bone.iter().enumerate() {
-                if self.is_ancestor_or_self(si, self.bones[mb].0) {
-                    s += (fk.markers[k] - pivot).cross(&g[k]);
+        // below[j]: the sum of g over the markers at or below joint j.
+        let mut below = vec![Vector3::zeros(); self.n_joints()];
+        for (&j, gk) in self.marker_joints.iter().zip(g) {
+            below[j] += gk;
+        }
+        for &j in self.order[1..].iter().rev() {
+            let p = self.parents[j].expect("non-root joint has a parent");
+            let add = below[j];
+            below[p] += add;
+        }
+        // u_b: Σ over the points bone b's orientation moves of (segment × gradient).
+        let mut u: Vec<Vector3<f64>> = self
+            .bones
+            .iter()
+            .map(|&(s, e)| (fk.joints[e] - fk.joints[s]).cross(&below[e]))
+            .collect();
+        for (k, (&j, &b)) in self.marker_joints.iter().zip(&self.marker_bone).enumerate() {
+            u[b] += (fk.markers[k] - fk.joints[j]).cross(&g[k]);
+        }
+        // ∂f/∂r_i = Σ_b W_ib^T u_b over the bones b that i turns.
+        let axes = self.rotation_axes(r);
+        for (b, (acting, ws)) in self.acting.iter().zip(&axes).enumerate() {
+            for (&i, w) in acting.iter().zip(ws) {
+                let d = w.transpose() * u[b];
+                for k in 0..3 {
+                    d_pose[3 + 3 * i + k] += d[k];
                 }
             }
-            let d = axes[i].transpose() * s;
-            d_pose[3 + 3 * i..6 + 3 * i].copy_from_slice(d.as_slice());
         }
         let d_lengths = self
             .bones
             .iter()
             .enumerate()
-            .map(|(b, &(_, eb))| {
-                let axis = fk.bone_rotations[b].column(2);
-                self.marker_joints
-                    .iter()
-                    .zip(g)
-                    .filter(|(&j, _)| self.is_ancestor_or_self(eb, j))
-                    .map(|(_, gk)| axis.dot(gk))
-                    .sum()
-            })
+            .map(|(b, &(_, eb))| fk.bone_rotations[b].column(2).dot(&below[eb]))
             .collect();
         let d_offsets = self
             .marker_bone
@@ -971,16 +1089,31 @@ pub(crate) mod tests {
         }
     }
 
-    #[test]
-    fn root_rotation_moves_everything_rigidly() {
+    /// The literal reading of Alg. 1 line 5: bone `i` moves bone `j` when `j`'s end joint
+    /// descends from `i`'s start joint (siblings included); row-major.
+    fn literal_alg1_links(sk: &Skeleton) -> Vec<bool> {
+        let n = sk.n_bones();
+        let mut out = vec![false; n * n];
+        for (i, &(si, _)) in sk.bones().iter().enumerate() {
+            for (j, &(sj, _)) in sk.bones().iter().enumerate() {
+                out[i * n + j] = sk.is_ancestor_or_self(si, sj);
+            }
+        }
+        out
+    }
+
+    /// The branching skeleton with a pseudo-random link matrix and a shuffled order.
+    fn scrambled() -> Skeleton {
         let sk = branching();
-        // The root has bones 0 (→1) and 5 (→6); Alg. 1 applies Q_0 Q_5 to every bone, so
-        // rotating bone 0 alone rotates the whole body rigidly about the root.
-        let mut r = vec![Vector3::zeros(); sk.n_bones()];
-        let rv = Vector3::new(0.3, -0.7, 0.2);
-        r[0] = rv;
-        let t = Vector3::new(1.0, 2.0, 3.0);
-        let fk = sk.forward(&t, &r, None, None).unwrap();
+        let n = sk.n_bones();
+        let links: Vec<bool> = (0..n * n).map(|k| (k * 7 + 3) % 5 < 3).collect();
+        sk.with_links(&links, Some(&[3, 0, 5, 1, 4, 2])).unwrap()
+    }
+
+    #[test]
+    fn a_rotation_moves_its_bone_and_descendants_rigidly_and_nothing_else() {
+        let sk = branching();
+        // Bone indices: 0: 0→1, 1: 1→2, 2: 2→3, 3: 1→4, 4: 4→5, 5: 0→6.
         let rest = sk
             .forward(
                 &Vector3::zeros(),
@@ -989,89 +1122,98 @@ pub(crate) mod tests {
                 None,
             )
             .unwrap();
-        let q = rodrigues(&rv);
-        for (a, b) in fk
-            .joints
-            .iter()
-            .zip(&rest.joints)
-            .chain(fk.markers.iter().zip(&rest.markers))
-        {
-            assert!((a - (t + q * b)).norm() < 1e-12);
+        for b in 0..sk.n_bones() {
+            let mut r = vec![Vector3::zeros(); sk.n_bones()];
+            let rv = Vector3::new(0.3, -0.7, 0.2);
+            r[b] = rv;
+            let fk = sk.forward(&Vector3::zeros(), &r, None, None).unwrap();
+            let (s, e) = sk.bones()[b];
+            let pivot = rest.joints[s];
+            let q = rodrigues(&rv);
+            let moved = |j: usize| sk.is_ancestor_or_self(e, j);
+            for j in 0..sk.n_joints() {
+                let expect = if moved(j) {
+                    pivot + q * (rest.joints[j] - pivot)
+                } else {
+                    rest.joints[j]
+                };
+                assert!((fk.joints[j] - expect).norm() < 1e-12, "bone {b} joint {j}");
+            }
+            for (k, &mb) in sk.marker_bones().iter().enumerate() {
+                let expect = if mb == b || moved(sk.bones()[mb].1) {
+                    pivot + q * (rest.markers[k] - pivot)
+                } else {
+                    rest.markers[k]
+                };
+                assert!((fk.markers[k] - expect).norm() < 1e-12, "bone {b} marker {k}");
+            }
         }
     }
 
     #[test]
-    fn alg1_order_and_sibling_links() {
+    fn tree_rule_composes_the_path_from_the_root_and_links_say_so() {
         let sk = branching();
-        // Bone indices: 0: 0→1, 1: 1→2, 2: 2→3, 3: 1→4, 4: 4→5, 5: 0→6.
-        let mut r = vec![Vector3::zeros(); sk.n_bones()];
-        r[0] = Vector3::new(0.2, 0.1, -0.3);
-        r[1] = Vector3::new(-0.4, 0.5, 0.1);
-        r[2] = Vector3::new(0.3, 0.3, 0.3);
-        r[3] = Vector3::new(0.1, -0.2, 0.6);
+        let (_, r) = pose(5, 0.8, sk.n_bones());
         let fk = sk.forward(&Vector3::zeros(), &r, None, None).unwrap();
         let q: Vec<Matrix3<f64>> = r.iter().map(rodrigues).collect();
-        // Bone 2 (2→3) is acted on by bones starting at 0, 1 and 2, in bone order:
-        // R = Q0 Q5 Q1 Q3 Q2 R̄ (eq. 8), including the sibling bone 3 (1→4).
-        let expect = q[0] * q[5] * q[1] * q[3] * q[2] * sk.rest_frames()[2];
+        // Bone 2 (2→3): the path 0→1→2→3, i.e. bones 0, 1, 2 (not the sibling 3: 1→4).
+        let expect = q[0] * q[1] * q[2] * sk.rest_frames()[2];
         assert!((fk.bone_rotations[2] - expect).norm() < 1e-12);
-        // Bone 1 (1→2) is not moved by bone 2 (starts below it).
-        let expect1 = q[0] * q[5] * q[1] * q[3] * sk.rest_frames()[1];
-        assert!((fk.bone_rotations[1] - expect1).norm() < 1e-12);
-        // Bone-link matrix as the authors' skeleton_vertices_links.
+        let expect4 = q[0] * q[3] * q[4] * sk.rest_frames()[4];
+        assert!((fk.bone_rotations[4] - expect4).norm() < 1e-12);
+        assert!((fk.bone_rotations[5] - q[5] * sk.rest_frames()[5]).norm() < 1e-12);
         let links = sk.bone_links();
         let n = sk.n_bones();
-        assert!(links[3 * n + 1]); // sibling at joint 1
-        assert!(!links[2 * n + 1]);
-        assert!(links[n + 4]);
-        assert!(links[5 * n + 5]);
+        assert!(!links[3 * n + 1] && !links[n + 3]); // siblings at joint 1
+        assert!(links[n + 2] && links[2 * n + 2] && !links[2 * n + 1]);
+        assert!(!links[5] && !links[5 * n]); // the two root bones
+        assert!(sk.custom_links().is_none());
     }
 
     #[test]
-    fn fk_matches_naive_alg1() {
-        // A literal transcription of Alg. 1 (loops over bone pairs) agrees with the tree
-        // recursion used by `forward_unchecked`.
+    fn literal_alg1_links_reproduce_the_sibling_coupling() {
         let sk = branching();
-        let (t, r) = pose(7, 0.8, sk.n_bones());
+        let lit = sk.clone().with_links(&literal_alg1_links(&sk), None).unwrap();
+        let (_, r) = pose(9, 0.8, sk.n_bones());
+        let fk = lit.forward(&Vector3::zeros(), &r, None, None).unwrap();
+        let q: Vec<Matrix3<f64>> = r.iter().map(rodrigues).collect();
+        // Bone 2 (2→3) is acted on by the bones starting at 0, 1 and 2, in bone order.
+        let expect = q[0] * q[1] * q[2] * q[3] * q[5] * sk.rest_frames()[2];
+        assert!((fk.bone_rotations[2] - expect).norm() < 1e-12);
+        assert_eq!(lit.bone_links(), literal_alg1_links(&sk));
+        // Back to the tree rule.
+        let back = lit.with_tree_links();
+        assert_eq!(back.bone_links(), sk.bone_links());
+    }
+
+    #[test]
+    fn custom_links_match_a_naive_product_in_the_given_order() {
+        // A transcription of the authors' loop: start from the identity, for each bone i
+        // in `order` left-multiply the transposes of the frames it links; then transpose.
+        let sk = scrambled();
+        let (links, order) = sk.custom_links().unwrap();
+        let (links, order) = (links.to_vec(), order.to_vec());
+        let n = sk.n_bones();
+        let (t, r) = pose(7, 0.8, n);
         let fk = sk.forward(&t, &r, None, None).unwrap();
-        let n_b = sk.n_bones();
-        let bones = sk.bones();
-        // Alg. 1 assumes bones sorted root-first; sort by the depth of the start joint
-        // (stable, so bones sharing a start joint keep their index order).
-        let depth = |mut a: usize| {
-            let mut d = 0;
-            while let Some(p) = sk.parents()[a] {
-                a = p;
-                d += 1;
-            }
-            d
-        };
-        let mut sorted: Vec<usize> = (0..n_b).collect();
-        sorted.sort_by_key(|&b| depth(bones[b].0));
-        assert_ne!(
-            sorted,
-            (0..n_b).collect::<Vec<_>>(),
-            "test needs a non-trivial order"
-        );
-        let mut rot = vec![Matrix3::identity(); n_b];
-        for &i in &sorted {
-            for &j in &sorted {
-                // "if j_1 is child of i_0": i's start joint is a proper ancestor of j's end.
-                if sk.is_ancestor_or_self(bones[i].0, bones[j].1) && bones[i].0 != bones[j].1 {
-                    rot[j] = rodrigues(&r[i]).transpose() * rot[j];
+        let mut rt = vec![Matrix3::identity(); n];
+        for &i in &order {
+            for j in 0..n {
+                if links[i * n + j] {
+                    rt[j] = rodrigues(&r[i]).transpose() * rt[j];
                 }
             }
         }
         let mut p = vec![Vector3::zeros(); sk.n_joints()];
         p[sk.root()] = t;
-        let mut done = vec![false; n_b];
-        // Bones are not necessarily root-first by index here; iterate until all placed.
+        let mut done = vec![false; n];
         while done.iter().any(|d| !d) {
-            for j in 0..n_b {
-                let (s, e) = bones[j];
-                let placed = s == sk.root() || sk.bone_of_end()[s].map(|b| done[b]).unwrap_or(true);
+            for j in 0..n {
+                let (s, e) = sk.bones()[j];
+                let placed = s == sk.root() || sk.bone_of_end()[s].map(|b| done[b]).unwrap();
                 if !done[j] && placed {
-                    let rj = rot[j].transpose() * sk.rest_frames()[j];
+                    let rj = rt[j].transpose() * sk.rest_frames()[j];
+                    assert!((fk.bone_rotations[j] - rj).norm() < 1e-12);
                     p[e] = p[s] + rj.column(2) * sk.lengths()[j];
                     done[j] = true;
                 }
@@ -1080,11 +1222,26 @@ pub(crate) mod tests {
         for (a, b) in fk.joints.iter().zip(&p) {
             assert!((a - b).norm() < 1e-12);
         }
+        assert!(matches!(
+            branching().with_links(&links, Some(&[0, 0, 1, 2, 3, 4])),
+            Err(AcmError::Invalid(_))
+        ));
+        assert!(matches!(
+            branching().with_links(&links[1..], None),
+            Err(AcmError::Shape(_))
+        ));
     }
 
     #[test]
     fn jacobian_matches_central_differences() {
-        let sk = branching();
+        let base = branching();
+        let lit = base.clone().with_links(&literal_alg1_links(&base), None).unwrap();
+        for sk in [base, lit, scrambled()] {
+            jacobian_matches_central_differences_for(&sk);
+        }
+    }
+
+    fn jacobian_matches_central_differences_for(sk: &Skeleton) {
         let (t, r) = pose(3, 0.9, sk.n_bones());
         let lengths: Vec<f64> = sk.lengths().iter().map(|l| l * 1.1).collect();
         let offsets: Vec<Vector3<f64>> = sk.offsets().iter().map(|v| v * 0.9).collect();
@@ -1168,7 +1325,13 @@ pub(crate) mod tests {
     #[test]
     #[allow(clippy::needless_range_loop)] // index arithmetic mirrors the Jacobian layout
     fn markers_vjp_is_jacobian_transpose() {
-        let sk = branching();
+        for sk in [branching(), scrambled()] {
+            markers_vjp_is_jacobian_transpose_for(&sk);
+        }
+    }
+
+    #[allow(clippy::needless_range_loop)] // index arithmetic mirrors the Jacobian layout
+    fn markers_vjp_is_jacobian_transpose_for(sk: &Skeleton) {
         let (t, r) = pose(11, 0.7, sk.n_bones());
         let jac = sk.forward_jacobian(&t, &r, None, None).unwrap();
         let g: Vec<Vector3<f64>> = (0..sk.n_markers())
@@ -1274,7 +1437,7 @@ pub(crate) mod tests {
     proptest! {
         #[test]
         fn fk_preserves_bone_lengths_and_marker_distances(seed in 0u64..10_000, scale in 0.0f64..3.0) {
-            let sk = branching();
+            let sk = if seed % 2 == 0 { branching() } else { scrambled() };
             let (t, r) = pose(seed, scale, sk.n_bones());
             let fk = sk.forward(&t, &r, None, None).unwrap();
             for (b, &(s, e)) in sk.bones().iter().enumerate() {
