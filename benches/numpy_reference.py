@@ -10,15 +10,12 @@ Semantics (Alg. 1, eq. 8):
 
 * Bone ``b`` runs from ``bones[b, 0]`` (start joint) to ``bones[b, 1]`` (end joint).
 * The global orientation of bone ``j`` is ``R_j = Q_{a1} Q_{a2} ... Q_{ak} Rbar_j`` with
-  ``Q_i = rodrigues(r_i)``; the product runs, in increasing bone index, over every bone ``i``
-  whose start joint is an ancestor of (or equal to) the start joint of ``j``.
+  ``Q_i = rodrigues(r_i)``; the product runs over the bones ``i`` with ``bone_links[i, j]``
+  (by default bone ``j`` and its ancestors: a rotation moves its bone and the bone's
+  descendants, never its siblings), in the order ``link_order`` (default: bone index).
 * ``p_root = t`` and ``p_end(j) = p_start(j) + R_j[:, 2] * l_j``.
 * Marker ``k`` is ``m_k = p_{joint(k)} + R_{b(k)} v_k`` with ``b(k) = marker_bones[k]``.
 
-For a root-first bone order (every bone after the bone ending at its start joint, as in the
-bundled rat and mouse models) increasing index is root-to-leaf order, which is what acm_rs
-composes. For other orders this module keeps the literal index order of Alg. 1, which then
-differs from acm_rs.
 
 Implementation notes (speed, so that the benchmark compares against good NumPy):
 
@@ -26,10 +23,10 @@ Implementation notes (speed, so that the benchmark compares against good NumPy):
 * Arrays are held "frames last" (e.g. ``(3, 3, T)`` for a stack of rotations) so that every
   3x3 product is a handful of long contiguous vector operations, which is several times faster
   than ``matmul`` on ``(T, 3, 3)`` stacks.
-* ``R_j`` is never formed: the accumulated rotation ``A_a = Q_{a1} ... Q_{ak}`` of each start
-  joint ``a`` is computed once (from its parent's, when the acting bones of the parent come
-  first in index order, which holds for root-first bone orders such as the bundled models) and
-  applied to the constant vectors ``Rbar_j e_z l_j`` and ``Rbar_{b(k)} v_k``.
+* ``R_j`` is never formed: the accumulated rotation ``A_j = Q_{a1} ... Q_{ak}`` of each bone
+  is computed once (from the product of another bone whose acting bones are a prefix of its
+  own, e.g. its parent bone's) and applied to the constant vectors ``Rbar_j e_z l_j`` and
+  ``Rbar_{b(k)} v_k``.
 * Joint positions are the root translation plus a sum of bone vectors along the path from the
   root, a single ``(J, B) @ (B, T)`` matrix product per coordinate.
 * Frames (and projected points) are processed in blocks that fit in the CPU cache.
@@ -125,21 +122,19 @@ class FKPlan:
     n_joints, n_bones, n_markers : int
     root : int
         Root joint index.
-    starts : numpy.ndarray, shape (S,)
-        The joints that start at least one bone, parents before children.
     steps : tuple of (int, tuple of int)
-        Per entry of ``starts``: the slot (index into ``starts``) whose accumulated rotation is
-        the left factor, or -1 for the identity, and the bones whose rotations are multiplied on
-        the right, in increasing index.
+        One entry (slot) per bone, in an order where every base comes first: the slot whose
+        accumulated rotation is the left factor, or -1 for the identity, and the bones whose
+        rotations are multiplied on the right, in application order.
     bone_slot : numpy.ndarray, shape (n_bones,)
-        Slot of each bone's start joint.
+        Slot of each bone.
     bone_vectors : numpy.ndarray, shape (n_bones, 3)
         ``Rbar_b e_z l_b``: the bone vector in the rest orientation.
     path : numpy.ndarray, shape (n_joints, n_bones)
         1 where bone ``b`` lies on the path from the root to joint ``j``.
     marker_joints : numpy.ndarray, shape (M,)
     marker_slot : numpy.ndarray, shape (M,)
-        Slot of the start joint of each marker's bone.
+        Slot of each marker's bone.
     marker_vectors : numpy.ndarray, shape (M, 3)
         ``Rbar_{b(k)} v_k``: marker offsets rotated into the rest orientation.
     """
@@ -148,7 +143,6 @@ class FKPlan:
     n_bones: int
     n_markers: int
     root: int
-    starts: np.ndarray
     steps: tuple[tuple[int, tuple[int, ...]], ...]
     bone_slot: np.ndarray
     bone_vectors: np.ndarray
@@ -190,18 +184,23 @@ def fk_plan(skeleton) -> FKPlan:
     root = int(np.flatnonzero(parents < 0)[0])
     anc = [_ancestors_or_self(parents, j) for j in range(n_joints)]
 
-    # Bones acting on a joint's outgoing bones, in increasing index (the Alg. 1 product).
-    start_set = sorted(set(bones[:, 0].tolist()), key=lambda a: len(anc[a]))
-    acting = {a: [i for i in range(n_bones) if bones[i, 0] in anc[a]] for a in start_set}
-    slot = {a: s for s, a in enumerate(start_set)}
+    # Bones acting on each bone, in application order (the product of eq. 8).
+    links = np.asarray(skeleton.bone_links, dtype=bool)
+    order = [int(i) for i in getattr(skeleton, "link_order", range(n_bones))]
+    acting = [[i for i in order if links[i, b]] for b in range(n_bones)]
+    by_len = sorted(range(n_bones), key=lambda b: len(acting[b]))
+    slot = {b: s for s, b in enumerate(by_len)}
     steps = []
-    for a in start_set:
-        own = [i for i in range(n_bones) if bones[i, 0] == a]
-        p = int(parents[a])
-        if p >= 0 and acting[p] and min(own) > max(acting[p]):
-            steps.append((slot[p], tuple(own)))  # A_a = A_parent Q_own...
+    for k, b in enumerate(by_len):
+        base = max(
+            (c for c in by_len[:k] if acting[b][: len(acting[c])] == acting[c]),
+            key=lambda c: len(acting[c]),
+            default=None,
+        )
+        if base is None:
+            steps.append((-1, tuple(acting[b])))  # the full product
         else:
-            steps.append((-1, tuple(acting[a])))  # general order: the full product
+            steps.append((slot[base], tuple(acting[b][len(acting[base]) :])))  # A_base Q...
 
     path = np.zeros((n_joints, n_bones))
     bone_of_end = {int(e): b for b, e in enumerate(bones[:, 1])}
@@ -214,13 +213,12 @@ def fk_plan(skeleton) -> FKPlan:
         n_bones=n_bones,
         n_markers=len(marker_joints),
         root=root,
-        starts=np.array(start_set, dtype=np.int64),
         steps=tuple(steps),
-        bone_slot=np.array([slot[int(a)] for a in bones[:, 0]], dtype=np.int64),
+        bone_slot=np.array([slot[b] for b in range(n_bones)], dtype=np.int64),
         bone_vectors=rest[:, :, 2] * lengths[:, None],
         path=path,
         marker_joints=marker_joints,
-        marker_slot=np.array([slot[int(bones[b, 0])] for b in marker_bones], dtype=np.int64),
+        marker_slot=np.array([slot[int(b)] for b in marker_bones], dtype=np.int64),
         marker_vectors=np.einsum("kij,kj->ki", rest[marker_bones], offsets),
     )
 
@@ -229,10 +227,12 @@ def _forward_block(plan: FKPlan, t: np.ndarray, r: np.ndarray) -> tuple[np.ndarr
     """Frames-last forward kinematics: ``t (3, T)``, ``r (3, B, T)`` -> ``(3, J, T), (3, M, T)``."""
     n_t = t.shape[1]
     q = _rodrigues_frames_last(r)  # (3, 3, B, T)
-    acc = np.empty((len(plan.starts), 3, 3, n_t))  # A_a per start joint, frames last
+    acc = np.empty((len(plan.steps), 3, 3, n_t))  # A_j per bone, frames last
     for s, (base, own) in enumerate(plan.steps):
         factors = ([acc[base]] if base >= 0 else []) + [q[:, :, b] for b in own]
-        if len(factors) == 1:
+        if not factors:
+            acc[s] = np.eye(3)[:, :, None]
+        elif len(factors) == 1:
             acc[s] = factors[0]
         else:
             cur = factors[0]

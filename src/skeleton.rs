@@ -243,7 +243,9 @@ impl Skeleton {
         self.acting = vec![Vec::new(); n_b];
         self.plan = Vec::with_capacity(n_b);
         for &a in &self.order {
-            let Some(b) = self.bone_of_end[a] else { continue };
+            let Some(b) = self.bone_of_end[a] else {
+                continue;
+            };
             let base = self.bone_of_end[self.bones[b].0];
             let mut chain = base.map(|c| self.acting[c].clone()).unwrap_or_default();
             let from = chain.len();
@@ -286,7 +288,13 @@ impl Skeleton {
             None => (0..n).collect(),
         };
         self.acting = (0..n)
-            .map(|b| order.iter().copied().filter(|&i| links[i * n + b]).collect())
+            .map(|b| {
+                order
+                    .iter()
+                    .copied()
+                    .filter(|&i| links[i * n + b])
+                    .collect()
+            })
             .collect();
         // Share prefixes: bones by the length of their acting list, each based on the
         // longest earlier list that is a prefix of its own.
@@ -481,6 +489,15 @@ impl Skeleton {
             }
         }
         out
+    }
+
+    /// The order in which the rotations apply: the one given to [`Skeleton::with_links`], or
+    /// for the tree rule the bones root first (breadth-first by end joint).
+    pub fn link_order(&self) -> Vec<usize> {
+        match &self.custom_links {
+            Some((_, order)) => order.clone(),
+            None => self.plan.iter().map(|&(b, _, _)| b).collect(),
+        }
     }
 
     /// The bones whose rotation acts on bone `b`, in the order they apply.
@@ -1145,7 +1162,10 @@ pub(crate) mod tests {
                 } else {
                     rest.markers[k]
                 };
-                assert!((fk.markers[k] - expect).norm() < 1e-12, "bone {b} marker {k}");
+                assert!(
+                    (fk.markers[k] - expect).norm() < 1e-12,
+                    "bone {b} marker {k}"
+                );
             }
         }
     }
@@ -1173,7 +1193,10 @@ pub(crate) mod tests {
     #[test]
     fn literal_alg1_links_reproduce_the_sibling_coupling() {
         let sk = branching();
-        let lit = sk.clone().with_links(&literal_alg1_links(&sk), None).unwrap();
+        let lit = sk
+            .clone()
+            .with_links(&literal_alg1_links(&sk), None)
+            .unwrap();
         let (_, r) = pose(9, 0.8, sk.n_bones());
         let fk = lit.forward(&Vector3::zeros(), &r, None, None).unwrap();
         let q: Vec<Matrix3<f64>> = r.iter().map(rodrigues).collect();
@@ -1235,7 +1258,10 @@ pub(crate) mod tests {
     #[test]
     fn jacobian_matches_central_differences() {
         let base = branching();
-        let lit = base.clone().with_links(&literal_alg1_links(&base), None).unwrap();
+        let lit = base
+            .clone()
+            .with_links(&literal_alg1_links(&base), None)
+            .unwrap();
         for sk in [base, lit, scrambled()] {
             jacobian_matches_central_differences_for(&sk);
         }

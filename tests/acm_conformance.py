@@ -9,7 +9,9 @@ our own assumptions:
   posed mesh skeleton with unit bones whose girdles point sideways, ventrally and along the
   body (not as our bundled model draws them), ``skeleton_coords`` made as the authors'
   ``get_skeleton_coords`` makes them (float16 bone direction, minimal turn from +z, Euler
-  x-y-z solution with the smaller norm), links by Alg. 1, a bone order unlike ours;
+  x-y-z solution with the smaller norm), links as the authors' files hold them (a rotation
+  moves its bone and the bone's descendants; or, on request, the literal reading of Alg. 1
+  that also moves the siblings), a bone order unlike ours;
 * the animal: the authors' forward model (``adjust_joint_marker_pos2``) -- every bone from
   the identity frame except the girdles' ``coords0``; rotations composed
   ``R0 R_i1 R_i2 ... coords0[b]`` over the bones whose links reach ``b``; markers on the bone
@@ -224,7 +226,7 @@ class Conformance:
 class AuthorsModel:
     """The authors' forward model for one model geometry (girdle turns, links)."""
 
-    def __init__(self, rng: np.random.Generator):
+    def __init__(self, rng: np.random.Generator, links: str = "tree"):
         self.names = [j for j, _ in TREE]
         self.parent = {j: p for j, p in TREE}
         self.bones = [(p, j) for j, p in TREE if p]  # file bone order = TREE order
@@ -262,15 +264,20 @@ class AuthorsModel:
         for g in GIRDLES:
             c = self.coords[self.end[g]]
             self.coords0[self.end[g]] = coords0_of(turn @ c if g.startswith("shoulder") else c)
-        # links (Alg. 1): rotation of bone i moves bone j if end(j) descends from start(i)
+        # skeleton_vertices_links: "tree" (the authors' files): the rotation of bone i moves
+        # bone j if j == i or end(j) descends from end(i); "literal" (Alg. 1 line 5 as
+        # printed): if end(j) descends from start(i), siblings included
+        if links not in ("tree", "literal"):
+            raise ValueError(f"links must be 'tree' or 'literal', got {links!r}")
         n = len(self.bones)
         self.links = np.zeros((n, n), bool)
-        for i, (si, _) in enumerate(self.bones):
+        for i, (si, ei) in enumerate(self.bones):
             for j, (_, ej) in enumerate(self.bones):
-                a = self.parent[ej]
-                while a and a != si:
+                a = ej if links == "tree" else self.parent[ej]
+                stop = ei if links == "tree" else si
+                while a and a != stop:
                     a = self.parent[a]
-                self.links[i, j] = a == si
+                self.links[i, j] = a == stop
 
     def limits(self) -> np.ndarray:
         """(n_bones, 3, 2) rad; bone 0 (the global rotation) unbounded."""
@@ -490,6 +497,7 @@ def write_conformance_dataset(
     dlc_noise: float = 2.0,
     dropout: float = 0.1,
     full_distortion: bool = False,
+    links: str = "tree",
 ) -> Conformance:
     """Write an ACM dataset folder of one synthetic individual; return its truth.
 
@@ -497,11 +505,13 @@ def write_conformance_dataset(
     camera views unlabelled, except the head, spine and tail markers of the first frame,
     which the authors' initialisation triangulates); ``n_dlc`` frames of smooth motion get
     DeepLabCut labels (``dlc_noise`` px, a fraction ``dropout`` below the cutoff).
+    ``links``: the rotation links of the model (``"tree"`` as in the authors' files, or
+    ``"literal"`` Alg. 1 with coupled siblings).
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    model = AuthorsModel(rng)
+    model = AuthorsModel(rng, links)
     size = (body_weight / 72.0) ** (1 / 3)
 
     # --- the individual: lengths (symmetric) and offsets (in their boxes, mirrored)

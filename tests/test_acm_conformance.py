@@ -38,11 +38,16 @@ def folder(tmp_path_factory):
     )
 
 
-def test_forward_model_is_the_authors(folder):
-    """Our FK of the skeleton read from model.npy = the authors' adjust_joint_marker_pos2."""
+@pytest.mark.parametrize("links", ["tree", "literal"])
+def test_forward_model_is_the_authors(folder, links, tmp_path):
+    """Our FK of the skeleton read from model.npy = the authors' adjust_joint_marker_pos2,
+    for the links of the authors' files (tree) and for the literal Alg. 1 links."""
+    if links != "tree":
+        folder = ac.write_conformance_dataset(tmp_path, seed=2, n_manual=4, n_dlc=4, links=links)
     _, model, _ = _read(folder.folder)
+    assert model.links_rule == {"tree": "tree", "literal": "literal Alg. 1"}[links]
     truth = _truth_skeleton(folder, model)
-    am = ac.AuthorsModel(np.random.default_rng(2))  # the geometry written for seed 2
+    am = ac.AuthorsModel(np.random.default_rng(2), links)  # the geometry written for seed 2
     rng = np.random.default_rng(7)
     t, r = ac._poses(am, rng, 6, smooth=False)
     lengths = np.array([folder.bone_lengths[e] for _, e in am.bones])
@@ -56,6 +61,11 @@ def test_forward_model_is_the_authors(folder):
             np.testing.assert_allclose(oj[truth.joint_index(n)], p, atol=1e-10)
         for n, p in markers.items():
             np.testing.assert_allclose(om[truth.marker_index(n)], p, atol=1e-10)
+    # the two rules really differ on these poses (the girdles against the spine)
+    other = ac.AuthorsModel(np.random.default_rng(2), "literal" if links == "tree" else "tree")
+    j_other, _ = other.forward(t[1], r[1], lengths, folder.marker_offsets)
+    j_this, _ = am.forward(t[1], r[1], lengths, folder.marker_offsets)
+    assert max(np.linalg.norm(j_other[n] - j_this[n]) for n in j_this) > 0.1
 
 
 def test_projection_is_the_authors(folder):

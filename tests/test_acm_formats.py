@@ -162,14 +162,27 @@ def test_model_other_topology_builds_skeleton(dataset, tmp_path):
     assert sk.state_map().n_state == 50
 
 
-def test_model_links_other_than_alg1_warn(dataset, tmp_path):
+def test_model_links_are_applied_as_the_file_holds_them(dataset, tmp_path):
+    """Any skeleton_vertices_links: the skeleton applies exactly those (in our bone order),
+    with the global rotation (file bone 0) moving every bone, and says which rule it is."""
     d = np.load(dataset.folder / "model.npy", allow_pickle=True).item()
     links = np.array(d["skeleton_vertices_links"], bool)
     links[3:] = np.eye(len(links), dtype=bool)[3:]  # each rotation moves only its own bone
     d["skeleton_vertices_links"] = links
     np.save(tmp_path / "model.npy", d, allow_pickle=True)
-    with pytest.warns(UserWarning, match="differs from Alg. 1"):
-        af.read_model(tmp_path)
+    m = af.read_model(tmp_path)
+    assert m.links_rule == "other"
+    edges = d["skeleton_edges"]
+    jn = [n.removeprefix("joint_") for n in d["joint_order"]]
+    file_bone = [int(np.flatnonzero(edges[:, 1] == jn.index(n))[0]) for n in m.skeleton.bone_names]
+    expect = links.copy()
+    expect[0] = True
+    np.testing.assert_array_equal(m.skeleton.bone_links, expect[np.ix_(file_bone, file_bone)])
+    np.testing.assert_array_equal(np.array(file_bone)[m.skeleton.link_order], np.arange(len(edges)))
+    tree = af.read_model(dataset.folder)
+    assert tree.links_rule == "tree" and tree.skeleton.custom_links is not None
+    r = np.random.default_rng(0).normal(scale=0.3, size=(m.skeleton.n_bones, 3))
+    assert np.abs(m.skeleton.forward(np.zeros(3), r)[0] - tree.skeleton.forward(np.zeros(3), r)[0]).max() > 0.1
 
 
 @pytest.mark.parametrize(

@@ -447,6 +447,10 @@ class AcmModel:
     source : str
         ``"template"`` if the model equals the bundled model of that name (its lengths,
         markers, limits are used), else ``"model.npy"``.
+    links_rule : str
+        Which rotation links the file holds: ``"tree"`` (a rotation moves its bone and the
+        bone's descendants, as in the authors' files), ``"literal Alg. 1"`` (siblings
+        coupled) or ``"other"``; the skeleton applies them exactly as the authors' tool does.
     """
 
     skeleton: Skeleton
@@ -455,6 +459,7 @@ class AcmModel:
     joint_index: np.ndarray
     marker_index: np.ndarray
     source: str
+    links_rule: str = "tree"
 
     def to_acm_joints(self, x: np.ndarray) -> np.ndarray:
         """``(..., J, k)`` in skeleton order -> ACM ``joint_order``."""
@@ -502,10 +507,9 @@ def read_model(
         Not the expected dict, bad shapes, names without the ``joint_``/``marker_`` prefixes,
         edges that do not form a tree, marker indices out of range.
 
-    Warns
-    -----
-    UserWarning
-        When ``skeleton_vertices_links`` follows another rule than Alg. 1.
+    The file's ``skeleton_vertices_links`` are applied as the authors' forward model applies
+    them (the global rotation moves every bone; then each bone's rotation, in file order, the
+    bones its row marks), whatever rule they follow (:func:`acm_model.file_links`).
     """
     from . import models
     from .skeleton import Skeleton
@@ -537,12 +541,15 @@ def read_model(
     coords = None
     if "skeleton_coords" in d:
         coords = _array(d, "skeleton_coords", p, (n_j - 1, 3, 3))
-    links = d.get("skeleton_vertices_links")
-    acm_model.check_links(links, parent, edges, [jn[e] for _, e in edges])
+    links, rule = acm_model.file_links(d.get("skeleton_vertices_links"), parent, edges)
     sk = _skeleton_from_model(p, jn, mn, parent, edges, verts, coords, mji, template, Skeleton)
+    # the file's links in our bone order (our bone b ends at joint sk.bones[b, 1])
+    ours = {sk.joint_index(jn[int(e)]): b for b, (_, e) in enumerate(edges)}
+    file_bone = np.array([ours[int(e)] for e in sk.bones[:, 1]], dtype=np.int64)
+    sk = sk.with_links(links[np.ix_(file_bone, file_bone)], np.argsort(file_bone))
     joint_index = np.array([sk.joint_index(n) for n in jn], dtype=np.int64)
     marker_index = np.array([sk.marker_index(n) for n in mn], dtype=np.int64)
-    return AcmModel(sk, jn, mn, joint_index, marker_index, "model.npy")
+    return AcmModel(sk, jn, mn, joint_index, marker_index, "model.npy", rule)
 
 
 def _skeleton_from_model(p, jn, mn, parent, edges, verts, coords, mji, template, skeleton_cls):

@@ -14,14 +14,14 @@ straight line along +z, except the four girdle bones (``spine_004 -> shoulder_*`
 
 Bones grow along the z-axis of their frame; a marker moves with the bone that ends at its
 joint, its offset in that bone's frame; a marker on the root gets no offset. Which bones a
-rotation moves is the file's ``skeleton_vertices_links``; Alg. 1 (and our forward kinematics)
-moves every bone whose end joint descends from the rotated bone's start joint, and a file
-with another rule is reported. ``docs/models.md`` lists every fact with its source.
+rotation moves is the file's ``skeleton_vertices_links``, used as the authors' tool uses it
+(:func:`file_links`): in the authors' own files a rotation moves its bone and the bone's
+descendants (the tree rule, acm-rs's default); any other matrix is applied as it stands.
+``docs/models.md`` lists every fact with its source.
 """
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -120,9 +120,26 @@ def girdle_frames(
     return out
 
 
-def alg1_links(parents: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """``[i, j]``: Alg. 1 lets the rotation of bone ``i`` move bone ``j`` (the end joint of
-    ``j`` is a child, at any depth, of the start joint of ``i``). Bones as in ``edges``."""
+def tree_links(parents: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """``[i, j]``: the rotation of bone ``i`` moves bone ``j`` when ``j`` is ``i`` or one of
+    its descendants (the tree rule; the authors' documentation of
+    ``skeleton_vertices_links``). Bones as in ``edges``."""
+    par = np.asarray(parents)
+    n = len(edges)
+    out = np.zeros((n, n), dtype=bool)
+    for i, (_, ei) in enumerate(edges):
+        for j, (_, ej) in enumerate(edges):
+            a = int(ej)
+            while a >= 0 and a != ei:
+                a = int(par[a])
+            out[i, j] = a == ei
+    return out
+
+
+def literal_alg1_links(parents: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """``[i, j]``: the literal reading of Alg. 1 line 5, "if j₁ is child of i₀": bone ``i``
+    moves bone ``j`` when ``j``'s end joint descends from ``i``'s start joint (so also the
+    siblings that share ``i``'s start joint). Bones as in ``edges``."""
     par = np.asarray(parents)
     n = len(edges)
     out = np.zeros((n, n), dtype=bool)
@@ -135,30 +152,33 @@ def alg1_links(parents: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return out
 
 
-def check_links(
-    links: np.ndarray | None, parents: np.ndarray, edges: np.ndarray, bone_names: Sequence[str]
-) -> list[str]:
-    """Compare the file's ``skeleton_vertices_links`` with Alg. 1; warn and return the
-    differences (``"rotation of A moves B"`` lines) when the file uses another rule."""
+def file_links(
+    links: np.ndarray | None, parents: np.ndarray, edges: np.ndarray
+) -> tuple[np.ndarray, str]:
+    """The link matrix the authors' forward model applies for a ``model.npy`` (bones as in
+    ``edges``) and the name of its rule (``"tree"``, ``"literal Alg. 1"`` or ``"other"``).
+
+    ``adjust_joint_marker_pos2`` applies the global rotation ``r0`` (the first bone's) to
+    every bone whatever row 0 says, and then, in file order, the rotation of bone ``i`` to
+    the bones ``links[i]`` marks; a file without links gets the tree rule.
+    """
+    n = len(edges)
     if links is None:
-        return []
-    lk = np.asarray(links, dtype=bool)
-    ref = alg1_links(parents, edges)
-    if lk.shape != ref.shape:
-        raise ValueError(
-            f"model.npy: skeleton_vertices_links has shape {lk.shape}, expected {ref.shape}"
-        )
-    diff = []
-    # row 0 is unused: the first bone's rotation is the global one (moves everything)
-    for i0, j in zip(*np.nonzero(lk[1:] != ref[1:]), strict=True):
-        i = i0 + 1
-        verb = "moves" if lk[i, j] else "does not move"
-        diff.append(f"rotation of bone {bone_names[i]} {verb} bone {bone_names[j]}")
-    if diff:
-        warnings.warn(
-            "model.npy: skeleton_vertices_links differs from Alg. 1 (which acm-rs implements) "
-            f"in {len(diff)} entries, e.g. {'; '.join(diff[:3])}. Poses are computed with "
-            "Alg. 1's rule; results can differ from the authors' tool for this model.",
-            stacklevel=3,
-        )
-    return diff
+        lk = tree_links(parents, edges)
+    else:
+        lk = np.array(links, dtype=bool)
+        if lk.shape != (n, n):
+            raise ValueError(
+                f"model.npy: skeleton_vertices_links has shape {lk.shape}, expected ({n}, {n})"
+            )
+    lk[0] = True  # r0, the global rotation, moves every bone
+    rule = "other"
+    for name, ref in (
+        ("tree", tree_links(parents, edges)),
+        ("literal Alg. 1", literal_alg1_links(parents, edges)),
+    ):
+        ref[0] = True
+        if np.array_equal(lk, ref):
+            rule = name
+            break
+    return lk, rule

@@ -156,15 +156,19 @@ class Skeleton:
         state = {k: v for k, v in self.__dict__.items() if k != "_native"}
         state["_native_args"] = (
             self._native.rest_frames, self._native.lengths, self._native.offsets,
+            self.custom_links,
         )  # fmt: skip
         return state
 
     def __setstate__(self, state: dict) -> None:
-        rest_frames, lengths, offsets = state.pop("_native_args")
+        rest_frames, lengths, offsets, links = state.pop("_native_args")
         self.__dict__.update(state)
-        self._native = _native.NativeSkeleton(
-            self._parents, np.ascontiguousarray(rest_frames), np.ascontiguousarray(lengths),
-            self._marker_joints, np.ascontiguousarray(offsets),
+        self._native = _with_links(
+            _native.NativeSkeleton(
+                self._parents, np.ascontiguousarray(rest_frames), np.ascontiguousarray(lengths),
+                self._marker_joints, np.ascontiguousarray(offsets),
+            ),
+            links,
         )  # fmt: skip
 
     # -- construction -----------------------------------------------------------------------
@@ -186,6 +190,8 @@ class Skeleton:
         name: str = "skeleton",
         units: str = "",
         rest_frames: np.ndarray | None = None,
+        bone_links: np.ndarray | None = None,
+        link_order: Sequence[int] | np.ndarray | None = None,
     ) -> Skeleton:
         """Build a skeleton from joint and marker positions in a rest pose (all ``r = 0``).
 
@@ -222,12 +228,19 @@ class Skeleton:
             Rest orientation of every bone (columns = its x, y, z axes in the world; z along
             the bone) instead of the construction from ``up`` -- e.g. the authors' girdle
             frames read from an ACM ``model.npy``. Saved with the skeleton.
+        bone_links : array_like of bool, shape (n_bones, n_bones), optional
+            Which bones each rotation moves (``[i, j]``: bone i's rotation moves bone j), as
+            an ACM ``model.npy``'s ``skeleton_vertices_links``. Default: the tree rule, a
+            bone's rotation moves the bone and its descendants, never its siblings (how the
+            animal moves; ``docs/models.md``). Saved with the skeleton.
+        link_order : array_like of int, shape (n_bones,), optional
+            With ``bone_links``: the order in which the rotations apply (default: bone index).
 
         Raises
         ------
         ValueError
             Wrong shapes, NaN, a parent list that is not a tree, zero-length bones, unknown
-            names, or limits with ``lower > upper``.
+            names, limits with ``lower > upper``, or a link order that is not a permutation.
         """
         jn = _names(joint_names, "joint")
         mn = _names(marker_names, "marker")
@@ -253,6 +266,10 @@ class Skeleton:
             nb = len(jn) - 1
             frames = as_float_array(rest_frames, "rest_frames", (nb, 3, 3)).reshape(nb, 3, 3)
         native = _native.NativeSkeleton.from_rest_pose(par, rj, mj, mr, upv, frames)
+        if bone_links is not None:
+            native = _with_links(native, (bone_links, link_order))
+        elif link_order is not None:
+            raise ValueError("link_order needs bone_links (the tree rule has its own order)")
         n_bones = int(native.n_bones)
         bones = native.bones
         bone_names = [jn[e] for e in bones[:, 1]]
@@ -297,6 +314,17 @@ class Skeleton:
             self._marker_joints,
             np.ascontiguousarray(offsets.reshape(self.n_markers, 3)),
         )
+        return self._copy_with(_with_links(native, self.custom_links))
+
+    def with_links(
+        self, bone_links: np.ndarray | None, link_order: Sequence[int] | None = None
+    ) -> Skeleton:
+        """A copy whose rotations move the bones ``bone_links`` says (see
+        :meth:`from_rest_pose`); ``bone_links=None`` goes back to the tree rule."""
+        links = None if bone_links is None else (bone_links, link_order)
+        return self._copy_with(_with_links(self._native, links))
+
+    def _copy_with(self, native: _native.NativeSkeleton) -> Skeleton:
         return Skeleton(
             joint_names=self._joint_names,
             parents=self._parents,
@@ -387,8 +415,23 @@ class Skeleton:
 
     @property
     def bone_links(self) -> np.ndarray:
-        """(n_bones, n_bones) bool: ``[i, j]`` if the rotation of bone i moves bone j (Alg. 1)."""
+        """(n_bones, n_bones) bool: ``[i, j]`` if the rotation of bone i moves bone j.
+
+        By default (the tree rule) bone i's rotation moves bone i and its descendants."""
         return self._native.bone_links()
+
+    @property
+    def link_order(self) -> np.ndarray:
+        """(n_bones,) the order in which the bone rotations apply (root first by default)."""
+        return self._native.link_order
+
+    @property
+    def custom_links(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(bone_links, link_order)`` when set explicitly (e.g. from an ACM ``model.npy``),
+        ``None`` for the tree rule."""
+        if self._native.tree_links:
+            return None
+        return self.bone_links, self.link_order
 
     @property
     def up(self) -> np.ndarray:
@@ -643,6 +686,13 @@ class Skeleton:
         doc["bone_length_constraints"] = [
             {k: v for k, v in vars(c).items() if v is not None} for c in self._constraints
         ]
+        if self.custom_links is not None:
+            links, order = self.custom_links
+            names = self.bone_names
+            doc["links"] = [
+                {"bone": names[i], "moves": [names[j] for j in np.flatnonzero(links[i])]}
+                for i in order
+            ]
         return doc
 
     def save(self, path: str | Path) -> None:
@@ -703,6 +753,7 @@ class Skeleton:
             if "bounds" in m
         }
         constraints = [BoneLengthConstraint(**c) for c in doc.get("bone_length_constraints", [])]
+        links, link_order = _links_from_doc(doc.get("links"), jn, parents, source)
         return cls.from_rest_pose(
             jn,
             parents,
@@ -718,6 +769,8 @@ class Skeleton:
             name=doc.get("name", "skeleton"),
             units=doc.get("units", ""),
             rest_frames=rest_frames,
+            bone_links=links,
+            link_order=link_order,
         )
 
     @classmethod
@@ -796,7 +849,7 @@ class SymmetryMap:
 # -- helpers ---------------------------------------------------------------------------------
 _DOC_KEYS = {
     "format", "version", "name", "units", "angle_units", "up", "symmetry", "joints", "markers",
-    "joint_limits", "bone_length_constraints",
+    "joint_limits", "bone_length_constraints", "links",
 }  # fmt: skip
 _JOINT_KEYS = {"name", "parent", "position", "frame"}
 _MARKER_KEYS = {"name", "joint", "position", "bounds"}
@@ -930,3 +983,38 @@ def _check_symmetry(
             seen.update((left, right))
             out[key].append((left, right))
     return out
+
+
+def _with_links(native: _native.NativeSkeleton, links) -> _native.NativeSkeleton:
+    """``native`` with ``links = (bone_links, link_order)`` set, or the tree rule for ``None``."""
+    if links is None:
+        return native if native.tree_links else native.with_links(None)
+    bone_links, order = links
+    lk = np.asarray(bone_links)
+    if lk.dtype != bool:
+        raise ValueError(f"bone_links must be a bool array, got dtype {lk.dtype}")
+    order_arr = None if order is None else as_index_array(order, "link_order")
+    return native.with_links(np.ascontiguousarray(lk), order_arr)
+
+
+def _links_from_doc(entries, joint_names, parents, source):
+    """``[[links]]`` of a skeleton file -> ``(bone_links, link_order)`` or ``(None, None)``."""
+    if entries is None:
+        return None, None
+    bone_names = [n for n, p in zip(joint_names, parents, strict=True) if p != -1]
+    n = len(bone_names)
+    links = np.zeros((n, n), dtype=bool)
+    order = []
+    for k, entry in enumerate(entries):
+        if not isinstance(entry, Mapping) or set(entry) != {"bone", "moves"}:
+            raise ValueError(f"{source}: links[{k}] must have exactly the keys 'bone' and 'moves'")
+        i = _lookup(bone_names, entry["bone"], "bone")
+        if i in order:
+            raise ValueError(f"{source}: links lists bone {entry['bone']!r} twice")
+        order.append(i)
+        for name in entry["moves"]:
+            links[i, _lookup(bone_names, name, "bone")] = True
+    if len(order) != n:
+        missing = [bone_names[i] for i in range(n) if i not in order]
+        raise ValueError(f"{source}: links must list every bone once; missing {missing}")
+    return links, np.array(order, dtype=np.int64)

@@ -292,6 +292,65 @@ impl PySkeleton {
         PyArray1::from_vec(py, self.inner.bone_links()).reshape(vec![n, n])
     }
 
+    /// The order in which the bone rotations apply (root first for the tree rule).
+    #[getter]
+    fn link_order<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
+        let v = self.inner.link_order().iter().map(|&b| b as i64).collect();
+        PyArray1::from_vec(py, v)
+    }
+
+    /// Whether the skeleton uses the tree rule (no explicit link matrix).
+    #[getter]
+    fn tree_links(&self) -> bool {
+        self.inner.custom_links().is_none()
+    }
+
+    /// A copy with an explicit link matrix `links (n_bones, n_bones)` (`[i, j]`: the
+    /// rotation of bone `i` moves bone `j`) applied in `order` (default: bone index order);
+    /// `links=None` goes back to the tree rule.
+    #[pyo3(signature = (links, order=None))]
+    fn with_links(
+        &self,
+        links: Option<PyReadonlyArrayDyn<'_, bool>>,
+        order: Option<IArr<'_>>,
+    ) -> PyResult<Self> {
+        let Some(links) = links else {
+            return Ok(Self {
+                inner: self.inner.clone().with_tree_links(),
+            });
+        };
+        let n = self.inner.n_bones();
+        if links.shape() != [n, n] {
+            return Err(PyValueError::new_err(format!(
+                "links must have shape ({n}, {n}), got {:?}",
+                links.shape()
+            )));
+        }
+        let flat: Vec<bool> = links.as_array().iter().copied().collect();
+        let order = match &order {
+            Some(o) => {
+                let v = view(o, "order", &[Some(n)])?;
+                let mut out = Vec::with_capacity(n);
+                for &i in v {
+                    if i < 0 {
+                        return Err(PyValueError::new_err(format!(
+                            "order must list bone indices 0..{n}, got {i}"
+                        )));
+                    }
+                    out.push(i as usize);
+                }
+                Some(out)
+            }
+            None => None,
+        };
+        let inner = self
+            .inner
+            .clone()
+            .with_links(&flat, order.as_deref())
+            .map_err(to_py)?;
+        Ok(Self { inner })
+    }
+
     /// Batch FK: `t (T, 3)`, `r (T, n_bones, 3)` → `(joints (T, J, 3), markers (T, M, 3))`.
     #[pyo3(signature = (t, r, lengths=None, offsets=None))]
     fn forward<'py>(

@@ -153,6 +153,25 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
             .map(|c| Vector3::new(c[0], c[1], c[2]))
             .collect(),
     )?;
+    // An explicit link matrix (e.g. from an ACM model.npy); absent: the tree rule.
+    let skeleton = match m.get("bone_links") {
+        None => skeleton,
+        Some(_) => {
+            let links = shaped(m, "bone_links", &[Some(nb), Some(nb)], what)?;
+            let order = shaped(m, "link_order", &[Some(nb)], what)?;
+            let flat: Vec<bool> = links.data.iter().map(|&v| v != 0.0).collect();
+            let mut ord = Vec::with_capacity(nb);
+            for &v in &order.data {
+                if !(v >= 0.0 && v.fract() == 0.0) {
+                    return Err(AcmError::Invalid(format!(
+                        "{what}: 'link_order' must hold bone indices, got {v}"
+                    )));
+                }
+                ord.push(v as usize);
+            }
+            skeleton.with_links(&flat, Some(&ord))?
+        }
+    };
     let cameras = Camera::many_from_params(&cams.data)?;
     let norm = Normalization {
         translation: normv.data[0],

@@ -81,6 +81,10 @@ def write_bundle(
         "noise": np.float64(noise),
         "joint_limits_on": np.float64(joint_limits),
     }
+    if skeleton.custom_links is not None:  # an explicit link matrix (e.g. an ACM model.npy)
+        links, order = skeleton.custom_links
+        arrays["bone_links"] = links.astype(np.float64)
+        arrays["link_order"] = order.astype(np.int64)
     path = Path(path)
     with atomic_write(path, "wb") as fh:
         np.savez(fh, **{k: np.ascontiguousarray(v) for k, v in arrays.items()})
