@@ -44,7 +44,7 @@ def make_recording(folder: Path, sk, rig, n: int, block: int = 5000):
             rig, sk, t, r, missing=0.15, outliers=0.01, seed=200 + k
         )
         det[:, a:b], lik[:, a:b] = d, lk
-        truth[a:b] = sk.forward(t, r)[0]
+        truth[a:b] = datasets.true_positions(sk, t, r)[0]
     out = slice(n // 2, n // 2 + n // 20)
     det[1, out] = np.nan  # one camera out for 5 % of the recording
     for arr in (det, lik, truth):

@@ -28,7 +28,7 @@ def recording(sk, rig, n, seed):
     det, lik = datasets.dlc_like_detections(
         rig, sk, t, r, missing=0.15, outliers=0.01, seed=seed + 1
     )
-    return det, lik, sk.forward(t, r)[0]
+    return det, lik, datasets.true_positions(sk, t, r)[0]
 
 
 def main(argv: list[str] | None = None) -> int:

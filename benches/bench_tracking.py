@@ -38,7 +38,7 @@ def rss_gb() -> float:
 
 def em_200() -> None:
     sk, rig, t, r, det, lik = session(200)
-    truth, _ = sk.forward(t, r)
+    truth, _ = datasets.true_positions(sk, t, r)
     for method in ("ukf", "deterministic"):
         t0 = time.perf_counter()
         res = acm_rs.track(rig, sk, det, likelihood=lik, method=method, progress=False)

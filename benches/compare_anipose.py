@@ -4,7 +4,9 @@ The peer is aniposelib's ``CameraGroup.triangulate_optim`` (what a careful anipo
 likelihood cutoff, then triangulation refined with temporal smoothness and rigid-length
 constraints); acm-rs is :func:`acm_rs.track` given the true skeleton. Both see the SAME
 synthetic DeepLabCut-like detections of a synthetic individual rat (4 cameras, 1280x1024),
-and both are scored against the ground truth of ``Skeleton.forward(t, r)``:
+and both are scored against ground truth made by independent code (:mod:`acm_rs.truth`, the
+authors' forward model and projection in plain NumPy, sharing nothing with acm-rs's forward
+model; the detections are projected by it too):
 
 * marker error: the peer's triangulated 3D markers, acm-rs's ``result.markers``;
 * joint error: acm-rs's ``result.joints``; anipose has no joints, so the true skeleton is fitted
@@ -156,7 +158,7 @@ def unit_copy(skeleton: acm_rs.Skeleton, units: str, factor: float) -> acm_rs.Sk
 
 def marker_speed(skeleton: acm_rs.Skeleton, t: np.ndarray, r: np.ndarray) -> np.ndarray:
     """(T - 1,) mean marker displacement from one frame to the next."""
-    _, markers = skeleton.forward(t, r)
+    _, markers = datasets.true_positions(skeleton, t, r)
     return np.linalg.norm(np.diff(markers, axis=0), axis=-1).mean(axis=1)
 
 
@@ -211,7 +213,7 @@ def make_case(name: str, n_frames: int, seed: int) -> Case:
         after = np.roll(gap, n_window) & ~gap
         windows.append((f"after the gap ({n_window} fr.)", after))
         desc += f", no detection at all in frames {gap.argmax()}-{gap.argmax() + n_window - 1}"
-    joints, markers = sk.forward(t, r)
+    joints, markers = datasets.true_positions(sk, t, r)
     case = Case(name, desc, rig, sk, det, lik, joints, markers, 10.0, sk, rig, windows, notes)
     if name == "mm":
         case.skeleton, case.rig = unit_copy(sk, "mm", 10.0), rig.scaled(10.0, units="mm")

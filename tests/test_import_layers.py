@@ -77,6 +77,8 @@ LAYERS: dict[str, int] = {
     "acm_rs._toml": 0,
     "acm_rs._version": 0,
     "acm_rs._provenance": 0,
+    # the independent ground truth of the synthetic data (issue 25): NumPy only
+    "acm_rs.truth": 0,
 }
 
 
@@ -353,3 +355,18 @@ def test_imports_go_down(graph):
         if layer_of(b) > layer_of(a)
     ]
     assert not upward, f"{len(upward)} upward import(s):\n  " + "\n  ".join(upward)
+
+
+def test_the_truth_shares_no_code_with_acm_rs(graph):
+    """``acm_rs.truth`` makes the ground truth of every synthetic accuracy figure; it must
+    import nothing of acm_rs (not even the helpers of layer 0), or a defect could hide in its
+    own truth."""
+    assert graph["acm_rs.truth"] == {}
+    source = (_package_dir() / "truth.py").read_text()
+    imported = {
+        alias.name.split(".")[0]
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.Import | ast.ImportFrom)
+        for alias in (node.names if isinstance(node, ast.Import) else [ast.alias(node.module or ".")])
+    }
+    assert imported <= {"__future__", "numpy"}, imported

@@ -1,12 +1,16 @@
 """Deterministic synthetic data: perturbed individual skeletons, random poses, noisy labels.
 
-Used by the tests, the benchmarks and the demo; every function is seeded.
+Used by the tests, the benchmarks and the demo; every function is seeded. The true markers,
+joints and pixels come from :mod:`acm_rs.truth` (the authors' forward model and projection in
+plain NumPy), never from acm-rs's own forward kinematics or cameras, so that a defect there
+shows up against the truth.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from . import truth
 from .camera import CameraRig
 from .rotation import rodrigues, rodrigues_inverse
 from .skeleton import Skeleton
@@ -80,6 +84,26 @@ def random_poses(
     return t, r
 
 
+def true_positions(
+    skeleton: Skeleton, t: np.ndarray, r: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """True joints ``(T, J, 3)`` and markers ``(T, M, 3)`` of poses ``t (T, 3)``,
+    ``r (T, n_bones, 3)``, by the independent forward model of :mod:`acm_rs.truth`."""
+    t = np.asarray(t, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    return truth.BodyModel.from_skeleton(skeleton).forward(
+        t.reshape(-1, 3), r.reshape(-1, skeleton.n_bones, 3)
+    )
+
+
+def true_pixels(rig: CameraRig, skeleton: Skeleton, t: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """True pixels ``(n_cams, T, M, 2)`` of the markers of poses ``t (T, 3)``,
+    ``r (T, n_bones, 3)`` (:mod:`acm_rs.truth`; NaN behind a camera)."""
+    _, markers = true_positions(skeleton, t, r)
+    px = truth.project(rig.get_params(), markers)
+    return px[:, 0] if np.ndim(t) == 1 else px
+
+
 def noisy_labels(
     rig: CameraRig,
     skeleton: Skeleton,
@@ -97,7 +121,7 @@ def noisy_labels(
         Pixels; NaN for dropped labels and markers outside the image or behind a camera.
     """
     rng = np.random.default_rng(seed)
-    px = skeleton.project(rig, t, r)
+    px = true_pixels(rig, skeleton, t, r)
     px = px + rng.normal(scale=noise_px, size=px.shape)
     drop = rng.random(px.shape[:-1]) < missing
     for c, cam in enumerate(rig):
@@ -187,7 +211,7 @@ def dlc_like_detections(
     likelihood : numpy.ndarray, shape (n_cams, T, M)
     """
     rng = np.random.default_rng(seed)
-    px = skeleton.project(rig, t, r)
+    px = true_pixels(rig, skeleton, t, r)
     px = px + rng.normal(scale=noise_px, size=px.shape)
     n_cams, n_frames, n_markers = px.shape[:3]
     lik = rng.uniform(0.95, 1.0, px.shape[:3])
@@ -263,7 +287,7 @@ def board_views(
     corners = np.full((len(rig), n_views, len(pts), 2), np.nan)
     normals = rodrigues(rvecs)[:, :, 2]
     for c, cam in enumerate(rig):
-        px = cam.project(world.reshape(-1, 3)).reshape(n_views, len(pts), 2)
+        px = truth.project(cam.params, world.reshape(-1, 3))[0].reshape(n_views, len(pts), 2)
         facing = np.einsum("vi,vi->v", normals, cam.center - world.mean(axis=1)) > 0
         w, h = cam.size if cam.size is not None else (np.inf, np.inf)
         inside = ((px >= 5) & (px <= np.array([w, h]) - 5)).all(axis=(1, 2))

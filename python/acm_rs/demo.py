@@ -177,7 +177,13 @@ def run_demo(
     """
     from . import export
     from .calibration import calibrate
-    from .datasets import board_views, checkerboard_points, dlc_like_detections, smooth_motion
+    from .datasets import (
+        board_views,
+        checkerboard_points,
+        dlc_like_detections,
+        smooth_motion,
+        true_positions,
+    )
     from .plots import plot_all
     from .plotting import camera_views, save_figure, skeleton_views
     from .tracking import track
@@ -255,7 +261,7 @@ def run_demo(
             res = track(rig, learned.skeleton, det, likelihood=lik, progress=False)
             stage["track"] = time.perf_counter() - start
             result.tracked = res
-            result.true_joints = truth.forward(tt, rt)[0]
+            result.true_joints = true_positions(truth, tt, rt)[0]
             start = time.perf_counter()
             files += res.save(out / "pose")
             files += export.to_anipose_csv(res, out / "pose_3d.csv")
