@@ -96,7 +96,9 @@ def skeleton_of(names: list[str], rest: np.ndarray, rule: str = "tree") -> acm_r
     """A skeleton (no markers) in the rest pose ``rest (29, 3)``; ``rule``: ``"tree"`` or
     ``"literal"`` (Alg. 1 line 5 as printed: siblings coupled)."""
     parents = [names.index(p) if p else -1 for _, p in AUTHORS_TREE]
-    sk = acm_rs.Skeleton.from_rest_pose(names, parents, rest, [], [], np.zeros((0, 3)), up=(0, 0, 1))
+    sk = acm_rs.Skeleton.from_rest_pose(
+        names, parents, rest, [], [], np.zeros((0, 3)), up=(0, 0, 1)
+    )
     if rule == "literal":
         bones, par = sk.bones, np.array(parents)
 

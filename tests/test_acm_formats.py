@@ -182,7 +182,12 @@ def test_model_links_are_applied_as_the_file_holds_them(dataset, tmp_path):
     tree = af.read_model(dataset.folder)
     assert tree.links_rule == "tree" and tree.skeleton.custom_links is not None
     r = np.random.default_rng(0).normal(scale=0.3, size=(m.skeleton.n_bones, 3))
-    assert np.abs(m.skeleton.forward(np.zeros(3), r)[0] - tree.skeleton.forward(np.zeros(3), r)[0]).max() > 0.1
+    assert (
+        np.abs(
+            m.skeleton.forward(np.zeros(3), r)[0] - tree.skeleton.forward(np.zeros(3), r)[0]
+        ).max()
+        > 0.1
+    )
 
 
 @pytest.mark.parametrize(

@@ -367,6 +367,8 @@ def test_the_truth_shares_no_code_with_acm_rs(graph):
         alias.name.split(".")[0]
         for node in ast.walk(ast.parse(source))
         if isinstance(node, ast.Import | ast.ImportFrom)
-        for alias in (node.names if isinstance(node, ast.Import) else [ast.alias(node.module or ".")])
+        for alias in (
+            node.names if isinstance(node, ast.Import) else [ast.alias(node.module or ".")]
+        )
     }
     assert imported <= {"__future__", "numpy"}, imported

@@ -2,7 +2,9 @@
 
 The reference (``benches/numpy_reference.py``) is written independently of the Rust core; this
 file adds a second, literal per-frame transcription of Alg. 1 (the double loop over bone pairs
-``(i, j)``) and checks the reference's projection against OpenCV.
+``(i, j)``, with the tree rule of ``docs/models.md``: bone ``i``'s rotation moves bone ``j``
+when ``j``'s end joint is ``i``'s end joint or below it) and checks the reference's
+projection against OpenCV.
 """
 
 from __future__ import annotations
@@ -53,10 +55,13 @@ def forward_literal(skeleton: acm_rs.Skeleton, t: np.ndarray, r: np.ndarray):
     rest, lengths = skeleton.rest_frames, skeleton.bone_lengths
     n_bones = len(bones)
     rot = [np.eye(3) for _ in range(n_bones)]  # line 2
-    for i in range(n_bones):  # lines 3-6: does the rotation of bone i move end joint j_1?
+    # lines 3-6, root first: does the rotation of bone i move end joint j_1?
+    depth = [sum(1 for a in range(skeleton.n_joints) if _is_descendant(parents, e, a))
+             for e in bones[:, 1]]  # fmt: skip
+    for i in sorted(range(n_bones), key=lambda b: depth[b]):
         q_i = _rodrigues_textbook(r[i])
         for j in range(n_bones):
-            if _is_descendant(parents, bones[j, 1], bones[i, 0]):
+            if bones[j, 1] == bones[i, 1] or _is_descendant(parents, bones[j, 1], bones[i, 1]):
                 rot[j] = q_i.T @ rot[j]
     rot = [rot[j].T @ rest[j] for j in range(n_bones)]  # lines 7-8
     joints = np.full((skeleton.n_joints, 3), np.nan)
@@ -161,9 +166,8 @@ def test_literal_alg1_matches_reference_and_acm_rs(model):
 def test_literal_alg1_for_a_bone_order_that_is_not_root_first():
     """Joints listed leaf-first: bone 0 (a -> b) precedes its parent bone 1 (root -> a).
 
-    The reference then takes the general path (full product per start joint, in increasing
-    bone index as Alg. 1 is written). acm_rs composes root to leaf instead, which differs for
-    such orders; the bundled models are root-first, where both agree.
+    The rotations still compose root to leaf (the skeleton's ``link_order``), in the
+    reference, the literal transcription and acm_rs alike.
     """
     skeleton = acm_rs.Skeleton.from_rest_pose(
         ["b", "a", "c", "root"],
@@ -174,13 +178,16 @@ def test_literal_alg1_for_a_bone_order_that_is_not_root_first():
         np.array([[0.3, 0.0, 3.0], [0.0, 0.2, 1.5], [0.6, 0.1, 2.4], [0.1, 0.1, -0.2]]),
     )
     plan = fk_plan(skeleton)
-    assert any(base < 0 and len(own) > 1 for base, own in plan.steps)  # general path used
+    assert list(skeleton.link_order) != sorted(skeleton.link_order)
     t, r = large_poses(skeleton, 20, seed=10)
     ref_joints, ref_markers = forward_np(skeleton, t, r, plan=plan)
+    acm_joints, acm_markers = skeleton.forward(t, r)
     for f in range(len(t)):
         joints, markers = forward_literal(skeleton, t[f], r[f])
         np.testing.assert_allclose(ref_joints[f], joints, rtol=0, atol=TOL_WORLD)
         np.testing.assert_allclose(ref_markers[f], markers, rtol=0, atol=TOL_WORLD)
+        np.testing.assert_allclose(acm_joints[f], joints, rtol=0, atol=TOL_WORLD)
+        np.testing.assert_allclose(acm_markers[f], markers, rtol=0, atol=TOL_WORLD)
 
 
 def test_forward_with_other_lengths_and_offsets(model):

@@ -49,9 +49,10 @@ def test_root_rotation_rotates_rigidly(rng, rat):
     np.testing.assert_allclose(markers, t + rest_m @ rot.T, atol=1e-12)
 
 
-def test_alg1_order_eq8(rat):
-    # Humerus orientation: every rotation from the root down to the shoulder, applied
-    # root-first (eq. 8), including the spine bone that shares the start joint spine_004.
+def test_tree_rule_order_eq8(rat):
+    # Humerus orientation: the rotations of the bones from the root down to the humerus,
+    # applied root-first (eq. 8); not the sibling clavicle nor spine_003, which share a
+    # start joint with a bone on the path.
     rng = np.random.default_rng(1)
     r = rng.normal(size=(rat.n_bones, 3)) * 0.5
     joints, _ = rat.forward(np.zeros(3), r)
@@ -62,8 +63,6 @@ def test_alg1_order_eq8(rat):
         "spine_005",
         "spine_004",
         "shoulder_left",
-        "shoulder_right",
-        "spine_003",
         "elbow_left",
     ]
     rot = np.eye(3)
@@ -140,6 +139,8 @@ def test_jacobians_vs_central_differences(rng, rat):
 
 
 def test_bone_links_match_authors_definition(rat):
+    """``skeleton_vertices_links`` as the authors document it: a bone is affected by the
+    rotation of a preceding bone in the skeleton graph (and by its own)."""
     links = rat.bone_links
     bones = rat.bones
     parents = rat.parents
@@ -153,7 +154,7 @@ def test_bone_links_match_authors_definition(rat):
 
     for i in range(rat.n_bones):
         for j in range(rat.n_bones):
-            expect = bones[i, 0] in ancestors_or_self(bones[j, 0])
+            expect = bones[i, 1] in ancestors_or_self(bones[j, 1])
             assert links[i, j] == expect
 
 
