@@ -29,8 +29,20 @@ def data():
     return sk, rig, det, lik
 
 
-def test_bundle_smoothing_equals_the_in_process_tracker(data, tmp_path):
+@pytest.mark.parametrize("links", ["tree", "explicit"])
+def test_bundle_smoothing_equals_the_in_process_tracker(data, tmp_path, links):
     sk, rig, det, lik = data
+    if links == "explicit":  # an ACM model.npy's link matrix (here: the literal Alg. 1 one)
+        b, par = sk.bones, sk.parents
+
+        def under(a, x):
+            while x >= 0 and x != a:
+                x = par[x]
+            return x == a
+
+        lk = np.array([[under(b[i, 0], b[j, 0]) for j in range(len(b))] for i in range(len(b))])
+        sk = sk.with_links(lk, np.arange(len(b))[::-1])
+        assert "bone_links" in np.load(write_bundle(tmp_path / "l.npz", rig, sk, det[:, :3]))
     opts = {"max_iter": 4, "tol": 0.05}
     # the acm-smooth binary runs the paper's random walk (no position-velocity state yet)
     ref = acm_rs.track(rig, sk, det, likelihood=lik, progress=False, motion="random_walk", **opts)

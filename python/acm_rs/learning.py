@@ -1,16 +1,20 @@
 """Learning the animal's skeleton and fitting poses (ACM supplement sections 3.2-3.4, 4.7).
 
 :func:`learn_skeleton` minimises eq. 9 with the symmetric parameterisation of eq. 12 (reduced
-bone lengths ``l*`` and marker offsets ``v*``, Alg. 2-3) jointly with every frame's pose, using
-``scipy.optimize.minimize(method="L-BFGS-B")`` on the value and exact gradient computed in Rust
-(in parallel over frames). Poses are normalised as in sec. 3.3 (``t / c_t``, ``r / c_r``);
-joint-angle limits (Supp. Table 1), marker box constraints (sec. 6) and bone-length priors
-(Supp. Table 2) are box bounds of L-BFGS-B.
+bone lengths ``l*`` and marker offsets ``v*``, Alg. 2-3) jointly with every frame's pose, by
+Levenberg-Marquardt in Rust on the exact Jacobian (the per-frame pose blocks eliminated by the
+Schur complement, as in bundle adjustment; ``learning/lm.rs``). Poses are normalised as in
+sec. 3.3 (``t / c_t``, ``r / c_r``); joint-angle limits (Supp. Table 1), marker box
+constraints (sec. 6) and bone-length priors (Supp. Table 2) are box bounds. The authors'
+optimiser, ``scipy.optimize.minimize(method="L-BFGS-B")`` on the value and exact gradient from
+Rust, runs first when ``rounds > 0`` (it stalls in this problem's flat valleys,
+``docs/models.md``).
 
 Steps: (1) a robust initial pose per frame without user input: triangulate the labelled markers
 (DLT on undistorted points), then align the generic model (rotations at the middle of their
 limits) to them by iteratively reweighted Kabsch; (2) refine all poses with the generic skeleton
-fixed; (3) learn lengths, offsets and poses together.
+fixed; (3) estimate the animal's size from the labels; (4) learn lengths, offsets and poses
+together, and multi-start the frames that stay off.
 
 :func:`fit_pose` is the first-pose fit of sec. 4.7 (eq. 9 for one frame, ``l`` and ``v`` fixed)
 that initialises the tracker's ``mu_0``.
