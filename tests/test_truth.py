@@ -155,3 +155,34 @@ def test_real_motion_is_representable():
         representability.skeleton_of(names, joints[0], "literal"), joints
     )
     assert lit.max() * 10 > 1.0
+
+
+def _hub() -> acm_rs.Skeleton:
+    """A lab-style skeleton whose root is a hub with three children (no single global bone)."""
+    names = ["centre", "head", "nose", "tail", "paw_l", "paw_r"]
+    parents = [-1, 0, 1, 0, 0, 0]
+    rest = np.array(
+        [[0, 0, 0], [0, 0, 2], [0, 0.3, 3], [0, 0, -3], [-1, -1, 0], [1, -1, 0.2]], float
+    )
+    return acm_rs.Skeleton.from_rest_pose(names, parents, rest, names, names, rest + 0.1)
+
+
+def test_a_hub_turns_as_a_whole_and_its_children_move_alone():
+    sk = _hub()
+    np.testing.assert_array_equal(sk.root_bones, [0, 2, 3, 4])
+    t, r = _poses(sk, 4, 5)
+    rot = acm_rs.rodrigues(np.random.default_rng(6).normal(size=(4, 3)))
+    j0, m0 = sk.forward(t, r)
+    j1, m1 = sk.forward(t, sk.turned(r, rot))
+    for a, b in ((j0, j1), (m0, m1)):
+        expect = np.einsum("fij,fkj->fki", rot, a - t[:, None]) + t[:, None]
+        np.testing.assert_allclose(b, expect, rtol=0, atol=1e-10)
+    # one child's rotation moves that child's subtree only
+    r2 = r.copy()
+    r2[:, sk.bone_index("tail")] += 0.3
+    j2, _ = sk.forward(t, r2)
+    moved = np.abs(j2 - j0).max(axis=(0, 2)) > 1e-9
+    assert [n for n, m in zip(sk.joint_names, moved, strict=True) if m] == ["tail"]
+    # synthetic poses of a hub skeleton keep the body upright as for the rat
+    t3, r3 = datasets.random_poses(sk, 3, seed=1)
+    assert np.isfinite(sk.forward(t3, r3)[0]).all()

@@ -42,16 +42,21 @@ def individual_skeleton(
     return skeleton.with_parameters(sym.expand_lengths(l_red), sym.expand_offsets(v_red))
 
 
-def _global_rotation(heading: np.ndarray, tilt: np.ndarray) -> np.ndarray:
-    """(n, 3) Rodrigues vectors of a body turned by ``heading`` about the arena's z (up) axis
-    and tilted by ``tilt`` (n, 3), from ACM's body frame (``BODY_TO_ARENA``)."""
+def _place_body(
+    skeleton: Skeleton, r: np.ndarray, heading: np.ndarray, tilt: np.ndarray
+) -> np.ndarray:
+    """``r (n, n_bones, 3)`` with the body turned by ``heading`` about the arena's z (up) axis
+    and tilted by ``tilt`` (n, 3), from ACM's body frame (``BODY_TO_ARENA``): the first root
+    bone's own rotation is replaced, the other root bones' are turned with it."""
     n = len(heading)
     glob = (
         rodrigues(np.stack([np.zeros(n), np.zeros(n), heading], axis=1))
         @ rodrigues(tilt)
         @ rodrigues(BODY_TO_ARENA)
     )
-    return rodrigues_inverse(glob)
+    r = np.array(r, dtype=np.float64)
+    r[:, skeleton.root_bones[0]] = 0.0
+    return skeleton.turned(r, glob)
 
 
 def random_poses(
@@ -79,7 +84,7 @@ def random_poses(
     _, r = sm.to_pose(z)
     heading = rng.uniform(-np.pi, np.pi, n)
     tilt = rng.normal(scale=0.15, size=(n, 3)) * [1.0, 1.0, 0.0]
-    r[:, 0] = _global_rotation(heading, tilt)
+    r = _place_body(skeleton, r, heading, tilt)
     t = np.column_stack([rng.uniform(-arena, arena, (n, 2)), np.full(n, height)])
     return t, r
 
@@ -175,7 +180,7 @@ def smooth_motion(
     _, r = sm.to_pose(z)
     heading = rng.uniform(-np.pi, np.pi) + 0.8 * wave(1)[:, 0]
     tilt = 0.1 * wave(3) * [1.0, 1.0, 0.0]
-    r[:, 0] = _global_rotation(heading, tilt)
+    r = _place_body(skeleton, r, heading, tilt)
     t = np.column_stack([arena * 0.8 * wave(2), height + 0.5 * wave(1)])
     return t, r
 

@@ -62,7 +62,8 @@ def demo_pose(skeleton: Skeleton, heading: float = 0.6) -> tuple[np.ndarray, np.
     _, r = sm.to_pose(np.zeros(sm.n_state))
     glob = rodrigues(np.array([0.0, 0.0, heading])) @ rodrigues(BODY_TO_ARENA)
     r = r.copy()
-    r[0] = rodrigues_inverse(glob)
+    r[skeleton.root_bones[0]] = 0.0
+    r = skeleton.turned(r, glob)
     joints, _ = skeleton.forward(np.zeros(3), r)
     centre = 0.5 * (joints.min(axis=0) + joints.max(axis=0))
     t = np.array([-centre[0], -centre[1], 6.0])

@@ -172,10 +172,8 @@ def initial_poses(
         rots[f] = r0_med
         centre = pts[f, ok].mean(axis=0) if ok.any() else np.median(ts[aligned], axis=0)
         ts[f] = centre - r0_med @ (neutral[ok].mean(axis=0) if ok.any() else neutral.mean(0))
-    r = np.repeat(r_mid[None], n_frames, axis=0)
-    # The global rotation acts first (outermost): R_global = Kabsch rotation.
-    r[:, 0] = rodrigues_inverse(rots @ rodrigues(r_mid[0]))
-    return ts, r
+    # The whole body turned by the Kabsch rotation (every root bone's rotation composed with it).
+    return ts, skeleton.turned(np.repeat(r_mid[None], n_frames, axis=0), rots)
 
 
 # -- the optimisation -----------------------------------------------------------------------

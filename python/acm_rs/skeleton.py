@@ -29,6 +29,7 @@ import numpy as np
 from . import _native, _toml
 from ._arrays import as_float_array, as_index_array
 from ._io import atomic_write
+from .rotation import rodrigues, rodrigues_inverse
 from .state import Normalization, StateMap
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -424,6 +425,43 @@ class Skeleton:
     def link_order(self) -> np.ndarray:
         """(n_bones,) the order in which the bone rotations apply (root first by default)."""
         return self._native.link_order
+
+    @property
+    def root_bones(self) -> np.ndarray:
+        """Indices of the bones that turn the whole body together: under the tree rule the
+        bones that start at the root (one for the rat), with an explicit link matrix the
+        first bone in ``link_order`` if its rotation moves every bone (the authors' ``r0``)."""
+        if self.custom_links is None:
+            return np.flatnonzero(self.bones[:, 0] == self.parents.tolist().index(-1))
+        first = int(self.link_order[0])
+        if not self.bone_links[first].all():
+            raise ValueError(
+                "this skeleton's link matrix has no global rotation: the first rotation in "
+                "link_order does not move every bone"
+            )
+        return np.array([first])
+
+    def turned(self, r: np.ndarray, rot: np.ndarray) -> np.ndarray:
+        """The rotations of poses turned rigidly about the root.
+
+        Parameters
+        ----------
+        r : array_like, shape (..., n_bones, 3)
+            Rodrigues vectors (rad).
+        rot : array_like, shape (..., 3, 3)
+            Rotation applied to the whole body (world frame), one per pose.
+
+        Returns
+        -------
+        numpy.ndarray, shape (..., n_bones, 3)
+            ``r`` with the rotation of every root bone (:attr:`root_bones`) composed with
+            ``rot`` from the left; all other rotations unchanged.
+        """
+        out = np.array(as_float_array(r, "r", (self.n_bones, 3)), dtype=np.float64)
+        rot = np.asarray(rot, dtype=np.float64)
+        for b in self.root_bones:
+            out[..., b, :] = rodrigues_inverse(rot @ rodrigues(out[..., b, :]))
+        return out
 
     @property
     def custom_links(self) -> tuple[np.ndarray, np.ndarray] | None:
