@@ -6,10 +6,12 @@ Conventions (see ``docs/skeleton_format.md``):
 * Bone ``b`` ends at the ``b``-th non-root joint (joint order) and starts at its parent, so a
   bone is named by its end joint. Each bone has a rest frame whose z-axis points along it, built
   from the rest pose and the ``up`` direction (y-axis as close to ``up`` as possible, x = y x z).
-* ``r`` holds one Rodrigues vector per bone. As in Alg. 1, the rotation of bone ``i`` moves every
-  bone whose end joint is a descendant of ``i``'s start joint; the first bone is the global
-  rotation. Joint-angle limits (Supp. Table 1) bound the components of ``r`` per bone; the
-  paper's table names the start joint (the "left shoulder" limit is the humerus, the bone
+* ``r`` holds one Rodrigues vector per bone. The rotation of bone ``i`` moves bone ``i`` and its
+  descendants, never its siblings (how the authors' published output moves; ``docs/models.md``,
+  "Kinematics"); the bones that start at the root (:attr:`Skeleton.root_bones`, one for the rat)
+  turn the whole body. An explicit link matrix (e.g. from an ACM ``model.npy``) replaces this
+  rule (:meth:`Skeleton.with_links`). Joint-angle limits (Supp. Table 1) bound the components
+  of ``r`` per bone; the paper's table names the start joint (the "left shoulder" limit is the humerus, the bone
   ``shoulder_left -> elbow_left``, named ``elbow_left`` here).
 * A marker attached to joint ``j`` moves rigidly with the bone ending at ``j``; its offset is in
   that bone's frame. Markers attached to the root use the frame of the root's first bone.
