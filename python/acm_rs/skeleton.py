@@ -11,8 +11,8 @@ Conventions (see ``docs/skeleton_format.md``):
   "Kinematics"); the bones that start at the root (:attr:`Skeleton.root_bones`, one for the rat)
   turn the whole body. An explicit link matrix (e.g. from an ACM ``model.npy``) replaces this
   rule (:meth:`Skeleton.with_links`). Joint-angle limits (Supp. Table 1) bound the components
-  of ``r`` per bone; the paper's table names the start joint (the "left shoulder" limit is the humerus, the bone
-  ``shoulder_left -> elbow_left``, named ``elbow_left`` here).
+  of ``r`` per bone; the paper's table names the start joint (the "left shoulder" limit is the
+  humerus, the bone ``shoulder_left -> elbow_left``, named ``elbow_left`` here).
 * A marker attached to joint ``j`` moves rigidly with the bone ending at ``j``; its offset is in
   that bone's frame. Markers attached to the root use the frame of the root's first bone.
 """
