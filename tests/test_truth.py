@@ -186,3 +186,12 @@ def test_a_hub_turns_as_a_whole_and_its_children_move_alone():
     # synthetic poses of a hub skeleton keep the body upright as for the rat
     t3, r3 = datasets.random_poses(sk, 3, seed=1)
     assert np.isfinite(sk.forward(t3, r3)[0]).all()
+
+
+def test_a_link_matrix_without_a_global_rotation_is_named():
+    """Turning a body needs a rotation applied first to every bone (the authors' r0)."""
+    sk = acm_rs.models.rat()
+    own = sk.with_links(np.eye(sk.n_bones, dtype=bool))
+    with pytest.raises(ValueError, match="no global rotation"):
+        own.turned(np.zeros((sk.n_bones, 3)), np.eye(3))
+    np.testing.assert_array_equal(sk.with_links(sk.bone_links).root_bones, [0])
