@@ -195,3 +195,55 @@ def test_a_link_matrix_without_a_global_rotation_is_named():
     with pytest.raises(ValueError, match="no global rotation"):
         own.turned(np.zeros((sk.n_bones, 3)), np.eye(3))
     np.testing.assert_array_equal(sk.with_links(sk.bone_links).root_bones, [0])
+
+
+def _hub_lab_skeleton() -> acm_rs.Skeleton:
+    """15 keypoints as a lab draws them in SLEAP: a hub (thorax) with 8 children, the head
+    with 6; one marker per keypoint; +-40 deg limits except on the hub's bones."""
+    parent = {
+        "head": "thorax", "eyeL": "head", "eyeR": "head", "antL": "head", "antR": "head",
+        "proboscis": "head", "neck": "head", "abdomen": "thorax", "wingL": "thorax",
+        "wingR": "thorax", "legL1": "thorax", "legR1": "thorax", "legL2": "thorax",
+        "legR2": "thorax",
+    }  # fmt: skip
+    step = {
+        "head": [0, 0, -1.5], "eyeL": [-0.4, 0.3, -0.3], "eyeR": [0.4, 0.3, -0.3],
+        "antL": [-0.3, 0.5, -0.6], "antR": [0.3, 0.5, -0.6], "proboscis": [0, -0.4, -0.5],
+        "neck": [0, 0.2, 0.3], "abdomen": [0, 0, 2.5], "wingL": [-1.5, 0.5, 1.0],
+        "wingR": [1.5, 0.5, 1.0], "legL1": [-1, -1, -0.5], "legR1": [1, -1, -0.5],
+        "legL2": [-1, -1, 0.7], "legR2": [1, -1, 0.7],
+    }  # fmt: skip
+    names = ["thorax", *parent]
+    pos = {"thorax": np.zeros(3)}
+    for n in parent:
+        pos[n] = pos[parent[n]] + np.array(step[n], float)
+    rest = np.array([pos[n] for n in names])
+    parents = [-1] + [names.index(parent[n]) for n in parent]
+    limits = {n: np.radians([[-40, 40]] * 3) for n in parent if parent[n] != "thorax"}
+    return acm_rs.Skeleton.from_rest_pose(
+        names, parents, rest, names, names, rest, joint_limits=limits, name="hub"
+    )
+
+
+def test_a_hub_skeleton_is_tracked_better_than_per_frame_fits():
+    """Issue 25: with the old rule a hub's children were one rigid body and EM wandered (the
+    log-likelihood fell in 48 of 99 iterations on a real SLEAP session, poses 1.7 x worse
+    than per-frame fits). Under the tree rule every child moves alone: EM's log-likelihood
+    rises at nearly every iteration (the unscented E-step and the outlier gate guarantee no
+    monotone rise; here it falls at most once) and the joints beat the per-frame fits of the
+    same detections."""
+    sk = _hub_lab_skeleton()
+    assert len(sk.root_bones) == 8
+    rig = demo_rig()
+    t, r = datasets.smooth_motion(sk, 200, seed=1, spread=0.4)
+    det, lik = datasets.dlc_like_detections(rig, sk, t, r, noise_px=2.0, seed=2)
+    joints, _ = datasets.true_positions(sk, t, r)
+    res = acm_rs.track(rig, sk, det, likelihood=lik, motion="random_walk")
+    ll = [h["log_likelihood"] for h in res.em_history]
+    assert res.info["converged"] and len(ll) < 30
+    assert sum(b < a for a, b in zip(ll, ll[1:], strict=False)) <= 1
+    assert ll[-1] > ll[0]
+    per_frame = acm_rs.track(rig, sk, det, likelihood=lik, method="deterministic")
+    err = np.nanmedian(np.linalg.norm(res.joints - joints, axis=-1))
+    err_pf = np.nanmedian(np.linalg.norm(per_frame.joints - joints, axis=-1))
+    assert err < 0.7 * err_pf
