@@ -27,7 +27,13 @@ Cases (240 frames by default; ``--quick``: 120):
 ``burst``    ``dlc`` detections of a motion time-warped so that it runs at 2.5x its median speed
              for 25 frames;
 ``mm``       ``dlc`` with the rig and the skeleton in mm (same pixels);
-``squares``  ``dlc`` with the rig and the skeleton in board squares of 6.5 cm (same pixels).
+``squares``  ``dlc`` with the rig and the skeleton in board squares of 6.5 cm (same pixels);
+``real``     real rat motion: the authors' published output for their example sequence
+             (``pose.npy`` of bbo-lab/ACM at bbc99f6, up to 240 time points, 29 joints; not
+             kept in this repository: ``--pose`` or ``ACM_RS_AUTHORS_POSE``), the animal's own
+             bones wearing the rat model's 43 markers (``benches/representability.py``),
+             posed by the exact per-frame fit of its joints (3e-11 mm), ``dlc`` detections; no
+             joint limits. Skipped without the file.
 
 Peer settings: ``scale_smooth=4, scale_length=2`` (issue 12), rigid constraints between every
 pair of markers on the same joint (``skeleton.marker_joints``), and anipose's defaults for the
@@ -38,8 +44,8 @@ anipose is in mm for the cm cases (anipose writes mm), in the case's units other
 Run from the repository root (needs ``pip install aniposelib`` or the ``bench`` extra;
 ``--no-peer`` runs acm-rs alone)::
 
-    python benches/compare_anipose.py [--cases dlc hard gap burst mm squares] [--frames 240]
-        [--seed 0] [--quick] [--no-peer] [--json PATH]
+    python benches/compare_anipose.py [--cases dlc hard gap burst mm squares real]
+        [--frames 240] [--seed 0] [--quick] [--no-peer] [--json PATH] [--pose PATH]
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ import sys
 import time
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -60,7 +67,7 @@ import acm_rs
 from acm_rs import datasets, models
 from acm_rs.demo import demo_rig
 
-CASES = ("dlc", "hard", "gap", "burst", "mm", "squares")
+CASES = ("dlc", "hard", "gap", "burst", "mm", "squares", "real")
 SQUARE_CM = 6.5
 #: Peer options: issue 12 for the first two, anipose's DEFAULT_CONFIG for the others.
 PEER_OPTIONS = {
@@ -176,7 +183,22 @@ def burst_motion(
     return t, r, ratio
 
 
-def make_case(name: str, n_frames: int, seed: int) -> Case:
+def real_motion(path, n_frames: int) -> tuple[acm_rs.Skeleton, np.ndarray, np.ndarray]:
+    """The real rat of the authors' ``pose.npy`` wearing the rat model's markers and its
+    poses ``t, r`` (first ``n_frames`` time points, centred on the arena's origin)."""
+    import representability as rp
+
+    names, joints = rp.load_authors_pose(path)
+    joints = joints[:n_frames]
+    sk = rp.dressed_skeleton(names, joints[0])
+    err, t, r = rp.fit_poses(sk, joints)
+    if err.max() > 1e-4:  # cm
+        raise RuntimeError(f"the real motion is not reproduced ({err.max() * 10:.2g} mm)")
+    centre = joints.reshape(-1, 3).mean(axis=0) * [1.0, 1.0, 0.0]
+    return sk, t - centre, r
+
+
+def make_case(name: str, n_frames: int, seed: int, pose_path=None) -> Case:
     """Build one case (``dlc``, ``gap``, ``mm`` and ``squares`` share the animal, the motion
     and the detections: only the missing frames or the units differ)."""
     sk = datasets.individual_skeleton(models.rat(), seed=seed + 1)
@@ -190,6 +212,9 @@ def make_case(name: str, n_frames: int, seed: int) -> Case:
         t, r, ratio = burst_motion(sk, n_frames, seed + 2, start, length, 2.5)
         windows.append((f"burst ({length} fr.)", (frames > start) & (frames <= start + length)))
         notes.append(f"marker speed over the burst: {ratio:.2f} x the median speed")
+    elif name == "real":
+        sk, t, r = real_motion(pose_path, n_frames)
+        notes.append(f"real rat motion: {len(t)} time points of the authors' pose.npy")
     else:
         t, r = datasets.smooth_motion(sk, n_frames, seed=seed + 2)
     if name == "hard":
@@ -504,7 +529,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="120 frames (unless --frames is given)")
     ap.add_argument("--no-peer", action="store_true", help="acm-rs only")
     ap.add_argument("--json", help="write every number to this file")
+    ap.add_argument("--pose", help="the authors' pose.npy for the 'real' case")
     args = ap.parse_args(argv)
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import representability
+
+    pose_path = args.pose or representability.default_pose_path()
+    if "real" in args.cases and pose_path is None:
+        print("case 'real' skipped: no pose.npy (--pose or ACM_RS_AUTHORS_POSE)")
+        args.cases = [c for c in args.cases if c != "real"]
     n_frames = args.frames
     if args.quick and "--frames" not in (argv if argv is not None else sys.argv):
         n_frames = 120
@@ -547,7 +580,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     warmed = False
     for name in args.cases:
-        case = make_case(name, n_frames, args.seed)
+        case = make_case(name, n_frames, args.seed, pose_path)
         peer = None
         if peer_ok:
             with warnings.catch_warnings():

@@ -117,13 +117,20 @@ def skeleton_of(names: list[str], rest: np.ndarray, rule: str = "tree") -> acm_r
 
 def fit_joints(sk: acm_rs.Skeleton, joints: np.ndarray, fixed: tuple[str, ...] = GIRDLES):
     """Per-frame least-squares fit of ``(t, r)`` to joint positions ``(T, J, 3)``, the bones
-    ``fixed`` held at zero rotation; returns the residual distance per frame and joint."""
+    ``fixed`` held at zero rotation; returns the residual distance ``(T, J)`` per frame and
+    joint (see :func:`fit_poses` for the poses)."""
+    return fit_poses(sk, joints, fixed)[0]
+
+
+def fit_poses(sk: acm_rs.Skeleton, joints: np.ndarray, fixed: tuple[str, ...] = GIRDLES):
+    """As :func:`fit_joints`; returns ``(residual (T, J), t (T, 3), r (T, n_bones, 3))``."""
     free = np.ones((sk.n_bones, 3), bool)
     free[[sk.bone_index(n) for n in fixed]] = False
     mask = np.concatenate([[True] * 3, free.ravel()])
     x = np.zeros(sk.n_pose)
     x[:3] = joints[0, 0]
     out = np.empty(joints.shape[:2])
+    poses = np.empty((len(joints), sk.n_pose))
     for f, target in enumerate(joints):
 
         def pose(z, x=x):
@@ -141,7 +148,30 @@ def fit_joints(sk: acm_rs.Skeleton, joints: np.ndarray, fixed: tuple[str, ...] =
         sol = least_squares(res, x[mask], jac=jac, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
         x[mask] = sol.x  # warm start of the next frame
         out[f] = np.linalg.norm(sol.fun.reshape(-1, 3), axis=-1)
-    return out
+        poses[f] = x
+    return out, poses[:, :3], poses[:, 3:].reshape(len(joints), sk.n_bones, 3)
+
+
+def dressed_skeleton(names: list[str], rest: np.ndarray) -> acm_rs.Skeleton:
+    """The real animal (its bone lengths; rest pose = ``rest``, its first frame) wearing the
+    rat model's 43 markers: each at the model's offset in its bone's frame (x right, y dorsal,
+    z along the bone; dorsal = the arena's +z)."""
+    rat = acm_rs.models.rat()
+    bare = skeleton_of(names, rest)
+    frames = bare.rest_frames
+    root_bone = int(bare.root_bones[0])
+    joint_of = [rat.joint_names[j] for j in rat.marker_joints]
+    marker_rest = np.array(
+        [
+            rest[names.index(j)] + frames[bare.bone_index(j) if j != names[0] else root_bone] @ v
+            for j, v in zip(joint_of, rat.marker_offsets, strict=True)
+        ]
+    )
+    parents = [names.index(p) if p else -1 for _, p in AUTHORS_TREE]
+    return acm_rs.Skeleton.from_rest_pose(
+        names, parents, rest, rat.marker_names, joint_of, marker_rest, up=(0, 0, 1),
+        symmetry=rat.symmetry, name="real_rat", units="cm",
+    )  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
