@@ -302,11 +302,11 @@ def _track(case: Case, **kwargs) -> tuple[acm_rs.PoseResult, float, list[str]]:
     return res, wall, [str(w.message) for w in caught]
 
 
-def run_acm(case: Case) -> dict:
-    """acm_rs.track with the true skeleton and default options."""
+def run_acm(case: Case, **options) -> dict:
+    """acm_rs.track with the true skeleton and default options (or ``options``)."""
     refused = None
     try:
-        res, wall, warned = _track(case)
+        res, wall, warned = _track(case, **options)
     except ValueError as exc:
         if "unit" not in str(exc):
             raise
@@ -315,7 +315,7 @@ def run_acm(case: Case) -> dict:
         refused = str(exc)
         norm = acm_rs.Normalization.for_units("cm", [cam.size for cam in case.rig])
         norm = dataclasses.replace(norm, translation=50.0 / (case.mm_per_unit / 10.0))
-        res, wall, warned = _track(case, normalization=norm)
+        res, wall, warned = _track(case, normalization=norm, **options)
     err = errors(case, res.markers, res.joints)
     inside = np.abs(res.joints - case.joints) <= 1.96 * res.joints_std
     row = summarise(
@@ -530,6 +530,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-peer", action="store_true", help="acm-rs only")
     ap.add_argument("--json", help="write every number to this file")
     ap.add_argument("--pose", help="the authors' pose.npy for the 'real' case")
+    ap.add_argument("--motion", help="acm-rs's motion model (default: track's default)")
     args = ap.parse_args(argv)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import representability
@@ -590,7 +591,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"anipose warm-up (JAX + numba compilation): {warm:.1f} s")
                     warmed = True
                 peer = run_peer(case)
-        acm = run_acm(case)
+        acm = run_acm(case, **({"motion": args.motion} if args.motion else {}))
         print_case(case, acm, peer)
         rows.append((case, acm, peer))
         report["cases"][name] = {
