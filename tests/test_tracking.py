@@ -331,3 +331,22 @@ def test_ctrl_c_in_the_random_walk_run_reports_the_random_walk(session, monkeypa
     assert res.info["interrupted"] and res.info["motion"] == "random_walk"
     assert "interrupted" in res.info["motion_note"]
     assert [h["motion"] for h in res.em_history] == ["random_walk"] * 2
+
+
+def test_em_says_when_max_iter_ended_it():
+    """Issue 26 item 4 (in part): reaching max_iter without convergence is said, not only
+    recorded in info["converged"]; a converged run says nothing of the kind."""
+    import warnings
+
+    rig = demo_rig()
+    sk = models.rat()
+    t, r = datasets.smooth_motion(sk, 12, seed=1)
+    det, lik = datasets.dlc_like_detections(rig, sk, t, r, seed=2)
+    with pytest.warns(UserWarning, match="max_iter=2 without converging"):
+        res = acm_rs.track(rig, sk, det, likelihood=lik, max_iter=2, motion="random_walk")
+    assert not res.info["converged"] and 1 <= res.info["best_iteration"] <= 2
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = acm_rs.track(rig, sk, det, likelihood=lik, motion="random_walk")
+    assert res.info["converged"]
+    assert not [w for w in caught if "without converging" in str(w.message)]

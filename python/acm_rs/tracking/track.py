@@ -315,6 +315,37 @@ def _warn_implausible_fit(result: PoseResult, fit_px: float, factor: float = 3.0
         )
 
 
+def _warn_em(result: PoseResult, max_iter: int, ll_tol: float) -> None:
+    """Say when EM ended at ``max_iter`` without converging, or when the marginal
+    log-likelihood of the model returned ended well below its best iteration (the unscented
+    E-step and the outlier gate do not guarantee a monotone rise; ``docs/tracking.md``)."""
+    import warnings
+
+    info = result.info
+    hist = [h for h in result.em_history if h.get("motion", info["motion"]) == info["motion"]]
+    if not hist or info["interrupted"]:
+        return
+    name = info["motion"].replace("_", " ")
+    if not info["converged"]:
+        warnings.warn(
+            f"EM stopped at max_iter={max_iter} without converging ({len(hist)} iterations of "
+            f"the {name} model): the poses are those of its last parameters, not of a "
+            "converged fit; check result.em_history or raise max_iter",
+            stacklevel=3,
+        )
+    ll = np.array([h["log_likelihood"] for h in hist], dtype=float)
+    best = int(np.nanargmax(ll)) if np.isfinite(ll).any() else len(ll) - 1
+    drop = ll[best] - ll[-1]
+    if np.isfinite(drop) and drop > 10.0 * ll_tol * max(hist[-1]["used"], 1):
+        warnings.warn(
+            f"EM's marginal log-likelihood peaked at iteration {best + 1} ({ll[best]:.6g}) "
+            f"and ended at {ll[-1]:.6g} ({name} model): the parameters returned are the last, "
+            "not the best; check result.em_history",
+            stacklevel=3,
+        )
+    info["best_iteration"] = best + 1
+
+
 def track(
     rig: CameraRig,
     skeleton: Skeleton,
@@ -556,6 +587,7 @@ def track(
             file=sys.stderr,
         )
     _warn_implausible_fit(result, fit_px)
+    _warn_em(result, max_iter, ll_tol)
     if _on_terminal(progress):
         print(result.summary(), file=sys.stderr)
     return result
