@@ -198,6 +198,7 @@ def test_model_links_are_applied_as_the_file_holds_them(dataset, tmp_path):
         (lambda d: d | {"joint_order": ["head"] + d["joint_order"][1:]}, "not of the form joint_"),
         (lambda d: d | {"skeleton_edges": d["skeleton_edges"][:-1]}, "skeleton_edges must have"),
         (lambda d: d | {"joint_marker_index": d["joint_marker_index"] + 100}, "missing joints"),
+        (lambda d: d | {"skeleton_vertices_links": np.eye(3, dtype=bool)}, "links has shape"),
     ],
 )
 def test_model_refuses_unexpected(dataset, tmp_path, mutate, match):

@@ -83,6 +83,16 @@ def test_bad_bundles_are_clear_errors(data, tmp_path):
     np.savez(tmp_path / "empty.npz", **arrays)
     with pytest.raises(ValueError, match="no detection is usable"):
         smooth_bundle(tmp_path / "empty.npz")
+    # an explicit link matrix needs its order, of bone indices
+    n = sk.n_bones
+    arrays = dict(np.load(path)) | {"bone_links": np.eye(n)}
+    np.savez(tmp_path / "noorder.npz", **arrays)
+    with pytest.raises(ValueError, match="no array 'link_order'"):
+        smooth_bundle(tmp_path / "noorder.npz")
+    for bad, match in ((np.full(n, 0.5), "bone indices"), (np.zeros(n), "permutation")):
+        np.savez(tmp_path / "order.npz", **(arrays | {"link_order": bad}))
+        with pytest.raises(ValueError, match=match):
+            smooth_bundle(tmp_path / "order.npz")
 
 
 @pytest.mark.skipif(not BINARY.exists(), reason="acm-smooth not built (cargo build --release)")

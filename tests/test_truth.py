@@ -79,6 +79,11 @@ def test_bad_links_are_refused():
         sk.with_links(np.ones((n, n), bool), np.zeros(n, np.int64))
     with pytest.raises(ValueError, match="bool"):
         sk.with_links(np.ones((n, n)))
+    with pytest.raises(ValueError, match="bone indices"):
+        sk.with_links(np.ones((n, n), bool), np.r_[-1, np.arange(1, n)])
+    with pytest.raises(ValueError, match="needs bone_links"):
+        acm_rs.Skeleton.from_rest_pose(["a", "b"], [-1, 0], [[0, 0, 0], [0, 0, 1.0]], [], [],
+                                       np.zeros((0, 3)), link_order=[0])  # fmt: skip
     doc = sk.with_links(np.eye(n, dtype=bool)).to_dict()
     doc["links"] = doc["links"][1:]
     with pytest.raises(ValueError, match="every bone once"):
