@@ -35,6 +35,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 import acm_rs
+from acm_rs import acm_model
 
 #: the authors' joint order in the example dataset, with each joint's parent
 AUTHORS_TREE = [
@@ -100,16 +101,7 @@ def skeleton_of(names: list[str], rest: np.ndarray, rule: str = "tree") -> acm_r
         names, parents, rest, [], [], np.zeros((0, 3)), up=(0, 0, 1)
     )
     if rule == "literal":
-        bones, par = sk.bones, np.array(parents)
-
-        def under(a: int, x: int) -> bool:
-            while x >= 0 and x != a:
-                x = par[x]
-            return x == a
-
-        n = sk.n_bones
-        links = np.array([[under(bones[i, 0], bones[j, 0]) for j in range(n)] for i in range(n)])
-        sk = sk.with_links(links)
+        sk = sk.with_links(acm_model.literal_alg1_links(sk.parents, sk.bones))
     elif rule != "tree":
         raise ValueError(f"rule must be 'tree' or 'literal', got {rule!r}")
     return sk

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import acm_rs
-from acm_rs import datasets, models
+from acm_rs import acm_model, datasets, models
 from acm_rs.demo import demo_rig
 from acm_rs.tracking import read_smoothed, smooth_bundle, write_bundle
 
@@ -33,16 +33,9 @@ def data():
 def test_bundle_smoothing_equals_the_in_process_tracker(data, tmp_path, links):
     sk, rig, det, lik = data
     if links == "explicit":  # an ACM model.npy's link matrix (here: the literal Alg. 1 one)
-        b, par = sk.bones, sk.parents
-
-        def under(a, x):
-            while x >= 0 and x != a:
-                x = par[x]
-            return x == a
-
-        lk = np.array([[under(b[i, 0], b[j, 0]) for j in range(len(b))] for i in range(len(b))])
+        lk = acm_model.literal_alg1_links(sk.parents, sk.bones)
         # the global rotation (bone 0) first, as in the authors' files, the rest reversed
-        sk = sk.with_links(lk, np.r_[0, np.arange(1, len(b))[::-1]])
+        sk = sk.with_links(lk, np.r_[0, np.arange(1, sk.n_bones)[::-1]])
         assert "bone_links" in np.load(write_bundle(tmp_path / "l.npz", rig, sk, det[:, :3]))
     opts = {"max_iter": 4, "tol": 0.05}
     # the acm-smooth binary runs the paper's random walk (no position-velocity state yet)
