@@ -1,5 +1,6 @@
 # Type stubs of the private native module built from src/python/ (pyo3).
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -208,7 +209,10 @@ class NativeTracker:
         tol: float,
         gate: float | None = None,
         callback: Callable[[int, float, float, dict[str, int]], bool | None] | None = None,
+        ll_tol: float | None = None,
+        dof: float | None = None,
     ) -> tuple[dict[str, F64], list[dict[str, float]], bool, bool]: ...
+    def em_outcome(self) -> dict[str, Any] | None: ...
     def e_step(
         self,
         mu0: F64,

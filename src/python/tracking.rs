@@ -18,6 +18,8 @@ pub(super) struct PyTracker {
     inner: Tracker<SkeletonEmission>,
     /// A private pool (`threads > 0`), e.g. 1 thread when windows run in parallel.
     pool: Option<rayon::ThreadPool>,
+    /// `(returned, final_stats)` of the last `run_em` (see `EmOutcome`).
+    last_em: Option<(Option<usize>, FilterStats)>,
 }
 
 /// Runs `f` inside a worker of `pool` if there is one, else of the global pool: the
@@ -138,7 +140,11 @@ impl PyTracker {
         } else {
             None
         };
-        Ok(Self { inner, pool })
+        Ok(Self {
+            inner,
+            pool,
+            last_em: None,
+        })
     }
 
     /// Dimension of the pose state `z` (Alg. 10).
@@ -217,6 +223,7 @@ impl PyTracker {
             }
         }
         let outcome = res.map_err(to_py)?;
+        self.last_em = Some((outcome.returned, outcome.final_stats));
         let history = outcome
             .history
             .iter()
@@ -234,6 +241,20 @@ impl PyTracker {
             outcome.converged,
             outcome.interrupted,
         ))
+    }
+
+    /// What the last `run_em` returned: `{"returned_iteration": k or None, "final": stats}`,
+    /// `k` the iteration whose E-step evaluated the returned parameters when they are an
+    /// earlier iterate of higher marginal log-likelihood than the last one (None: the last
+    /// M-step's), `final` the counts of the final E-step under them; None before any run.
+    fn em_outcome<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
+        let Some((returned, stats)) = &self.last_em else {
+            return Ok(None);
+        };
+        let d = PyDict::new(py);
+        d.set_item("returned_iteration", *returned)?;
+        d.set_item("final", stats_dict(py, stats)?)?;
+        Ok(Some(d))
     }
 
     /// One E-step (filter + smoother) with the given parameters → stats dict. `smooth=False`:

@@ -784,3 +784,57 @@ fn pipelined_smoother_equals_the_sequential_one() {
         }
     }
 }
+
+#[test]
+fn em_returns_the_best_parameters_it_evaluated() {
+    // Whatever EM's path, the returned parameters score at least as high as every
+    // parameter set its E-steps evaluated, and the moments left are their posterior.
+    let (em, x, p, _, _, _) = linear_problem(11);
+    let opts = EmOptions {
+        max_iter: 8,
+        tol: 1e-12,
+        gate: None,
+        ll_tol: Some(1e-9),
+        dof: None,
+    };
+    let mut tr = Tracker::new(em.clone(), x.clone()).unwrap();
+    let out = tr.run_em(p.clone(), &opts, |_| true).unwrap();
+    let best = out
+        .history
+        .iter()
+        .map(|h| h.stats.log_lik)
+        .fold(f64::NEG_INFINITY, f64::max);
+    let margin = 1e-9 * out.final_stats.used as f64;
+    assert!(out.final_stats.log_lik >= best - margin, "{out:?}");
+    // The final E-step is the posterior under the returned parameters.
+    let mut check = Tracker::new(em.clone(), x.clone()).unwrap();
+    let s = check.e_step(&out.params, None).unwrap();
+    assert_eq!(s.log_lik, out.final_stats.log_lik);
+    assert_eq!(check.means(), tr.means());
+}
+
+#[test]
+fn the_log_likelihood_stop_needs_two_small_changes() {
+    let it = |ll: f64| Iteration {
+        iteration: 0,
+        delta: 0.0,
+        seconds: 0.0,
+        stats: FilterStats {
+            used: 1000,
+            log_lik: ll,
+            ..FilterStats::default()
+        },
+    };
+    let tol = 1e-3; // 1 nat for 1,000 entries
+    let h: Vec<Iteration> = [0.0, 500.0, 500.5].map(it).to_vec();
+    assert!(
+        !super::ll_settled(&h, tol),
+        "one small change after a big one"
+    );
+    let h: Vec<Iteration> = [0.0, 500.0, 500.5, 500.9].map(it).to_vec();
+    assert!(super::ll_settled(&h, tol));
+    let h: Vec<Iteration> = [500.0, 500.5, 400.0].map(it).to_vec();
+    assert!(!super::ll_settled(&h, tol), "a fall is not convergence");
+    let h: Vec<Iteration> = [500.0, 500.5].map(it).to_vec();
+    assert!(!super::ll_settled(&h, tol), "too few iterations");
+}
