@@ -19,6 +19,7 @@ Conventions (see ``docs/skeleton_format.md``):
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from collections.abc import Mapping, Sequence
@@ -318,6 +319,26 @@ class Skeleton:
             np.ascontiguousarray(offsets.reshape(self.n_markers, 3)),
         )
         return self._copy_with(_with_links(native, self.custom_links))
+
+    def scaled(self, factor: float, units: str = "") -> Skeleton:
+        """The same animal in another length unit: bone lengths, marker offsets, their
+        bounds, the rest root and the bone-length priors times ``factor`` (e.g. 10 from cm
+        to mm), declared in ``units`` (the pair of :meth:`acm_rs.CameraRig.scaled`)."""
+        f = float(factor)
+        if not (math.isfinite(f) and f > 0):
+            raise ValueError(f"scale factor must be finite and > 0, got {factor}")
+        out = self.with_parameters(self.bone_lengths * f, self.marker_offsets * f)
+        out._rest_root = self._rest_root * f
+        out._marker_bounds = self._marker_bounds * f
+        out._constraints = tuple(
+            dataclasses.replace(
+                c, **{k: getattr(c, k) * f for k in ("slope", "slope_sd", "mean", "sd")
+                      if getattr(c, k) is not None}
+            )
+            for c in self._constraints
+        )  # fmt: skip
+        out.units = units
+        return out
 
     def with_links(
         self, bone_links: np.ndarray | None, link_order: Sequence[int] | None = None

@@ -211,7 +211,7 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
     let noise = checked(
         m,
         "noise",
-        1e-3,
+        1e-4,
         |v| v.is_finite() && v > 0.0,
         "a finite number > 0",
         what,
@@ -264,7 +264,18 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
         ll_tol: Some(ll_tol).filter(|v| v.is_finite() && *v > 0.0),
         dof: Some(dof).filter(|v| v.is_finite() && *v > 0.0),
     };
-    let init = Params::initial(mu0, model.n_meas(), noise);
+    let mut init = Params::initial(mu0, model.n_meas(), noise);
+    // Optional start of diag(V_x) (`acm_rs.tracking.track.initial_vx`: the detections' own
+    // noise); absent: `noise` as for V0 and V_z (sec. 4.7).
+    if m.contains_key("vx_init") {
+        let vx = shaped(m, "vx_init", &[Some(model.n_meas())], what)?;
+        if let Some(v) = vx.data.iter().find(|v| !(v.is_finite() && **v > 0.0)) {
+            return Err(AcmError::Invalid(format!(
+                "{what}: 'vx_init' must be finite and > 0, got {v}"
+            )));
+        }
+        init.vx = vx.data.clone();
+    }
     Ok(Bundle {
         model,
         detections,

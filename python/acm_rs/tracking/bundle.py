@@ -22,9 +22,11 @@ from .track import (
     DEFAULT_GATE,
     DEFAULT_LL_TOL,
     _first_pose,
+    _in_rig_units,
     _measurements,
     default_normalization,
     gate_threshold,
+    initial_vx,
 )
 
 
@@ -41,7 +43,7 @@ def write_bundle(
     tol: float = 0.05,
     gate: float | None = DEFAULT_GATE,
     normalization: Normalization | None = None,
-    noise: float = 1e-3,
+    noise: float = 1e-4,
     marker_names=None,
     stop: str = "loglik",
     ll_tol: float = DEFAULT_LL_TOL,
@@ -49,7 +51,8 @@ def write_bundle(
     """Write an ``acm-smooth`` input bundle (NPZ, atomically).
 
     Parameters are those of :func:`acm_rs.track`; ``detections`` ``(n_cams, T, M, 2)`` px
-    and ``likelihood`` ``(n_cams, T, M)``. The single-frame fit for ``mu0`` runs here.
+    and ``likelihood`` ``(n_cams, T, M)``. The single-frame fit for ``mu0`` and the start of
+    ``V_x`` (:func:`~acm_rs.tracking.track.initial_vx`, key ``vx_init``) run here.
 
     Returns
     -------
@@ -60,8 +63,11 @@ def write_bundle(
         raise ValueError(f"stop must be 'loglik' or 'alg13', got {stop!r}")
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
     norm = normalization or default_normalization(rig, skeleton)
-    _, t0, r0 = _first_pose(rig, skeleton, det, norm)
-    mu0 = StateMap(skeleton, norm, joint_limits).start_state(t0, r0)
+    # the start as track computes it (in units of c_t, so the same in any length unit)
+    rig_u, sk_u, norm_u, _ = _in_rig_units(rig, skeleton, norm)
+    _, t0, r0 = _first_pose(rig_u, sk_u, det, norm_u)
+    mu0 = StateMap(sk_u, norm_u, joint_limits).start_state(t0, r0)
+    vx_init = initial_vx(rig_u, sk_u, det, norm_u)
     g = gate_threshold(gate)
     arrays = {
         "parents": skeleton.parents.astype(np.int64),
@@ -79,6 +85,7 @@ def write_bundle(
         "ll_tol": np.float64(ll_tol if stop == "loglik" else np.nan),
         "gate": np.float64(np.nan if g is None else g),
         "noise": np.float64(noise),
+        "vx_init": vx_init,
         "joint_limits_on": np.float64(joint_limits),
     }
     if skeleton.custom_links is not None:  # an explicit link matrix (e.g. an ACM model.npy)

@@ -71,6 +71,7 @@ from .track import (
     check_camera_order,
     default_normalization,
     gate_threshold,
+    initial_vx,
 )
 from .windows import (
     _H5Writer,
@@ -192,7 +193,7 @@ def learn_windows(
     max_iter: int = 100,
     ll_tol: float = DEFAULT_LL_TOL,
     gate: float | None = DEFAULT_GATE,
-    noise: float = 1e-3,
+    noise: float = 1e-4,
     relinearize: int = 10,
     progress: bool | None = False,
     windows: Sequence[tuple[int, int]] = (),
@@ -246,9 +247,10 @@ def learn_windows(
     def trackers(order: int, which: Sequence[int]) -> list:
         return [maker.tracker(xs[k], order=order) for k in which]
 
-    n_x = xs[0][0].size
     eye = np.eye(n) * noise
-    inits = [(mu, eye, eye.copy(), np.full(n_x, noise)) for mu in mus]
+    # V_x starts at the detections' noise, as in track (docs/tracking.md, "The start")
+    vx0 = initial_vx(rig, skeleton, np.concatenate(list(windows_det), axis=1), norm)
+    inits = [(mu, eye, eye.copy(), vx0) for mu in mus]
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         rw = trackers(1, range(len(xs)))
         params, history, converged = _em_windows(rw, inits, max_iter, ll_tol, gate_thr, pool,
@@ -301,7 +303,7 @@ def learn_windows(
             vparams, more, vconv = _em_windows(vel, vinit, left, ll_tol, gate_thr, pool, printer)
             for h in more:
                 h["motion"] = "velocity"
-            worse = _velocity_worse(history, more)
+            worse = _velocity_worse(history[-1], more[-1]) if history and more else ""
             if worse and motion == "auto":
                 note = worse
             else:

@@ -208,6 +208,73 @@ def _deterministic(
     return poses[:, :3], poses[:, 3:].reshape(len(poses), skeleton.n_bones, 3)
 
 
+def _in_rig_units(
+    rig: CameraRig, skeleton: Skeleton, norm: Normalization
+) -> tuple[CameraRig, Skeleton, Normalization, float]:
+    """The rig and skeleton with lengths in units of ``c_t`` (``norm.translation``), the
+    normalisation that goes with them (``c_t = 1``) and ``c_t``.
+
+    Every fit and filter of :func:`track` runs on these copies, so the same detections with a
+    rig and skeleton in cm, mm or board squares give the same numbers to rounding (1e-10 of
+    the median error on real rat motion, ``benches/README.md``): the iterative steps (the
+    first pose's fit, EM's stops, the gate) see identical inputs instead of inputs that
+    differ in their last bits and paths that drift apart."""
+    import dataclasses
+
+    c_t = float(norm.translation)
+    f = 1.0 / c_t
+    rig_u = rig.scaled(f, units="")
+    sk_u = skeleton.scaled(f)
+    return rig_u, sk_u, dataclasses.replace(norm, translation=1.0), c_t
+
+
+def initial_vx(
+    rig: CameraRig, skeleton: Skeleton, det: np.ndarray, norm: Normalization, n_frames: int = 10
+) -> np.ndarray:
+    """Start of ``diag(V_x)`` from the data: the squared robust scale of the reprojection
+    residuals of per-frame fits (eq. 9, lengths and offsets fixed) of the ``n_frames``
+    best-detected frames, per image axis, in normalised pixels (eq. 11), corrected for the
+    degrees of freedom the fits used. Returns ``(n_cams * M * 2,)`` in the layout of one
+    frame's measurements (camera, marker, axis).
+
+    The paper starts ``V_x`` at 0.001 (sec. 4.7): 20 px SD for 1280x1024 images, ~10x the
+    noise of DeepLabCut detections. From such a start the innovation gate admits the
+    confident outliers, they inflate ``V_x`` and ``V_z``, and EM settles at a worse optimum
+    (real rat motion: log-likelihood 270,000 vs 277,000-279,000 from starts near the data's
+    noise; docs/tracking.md)."""
+    n_cams, _, n_markers, _ = det.shape
+    seen = (np.isfinite(det[..., 0]).sum(axis=0) >= 2).sum(axis=1)
+    frames = np.argsort(-seen, kind="stable")[:n_frames]
+    frames = np.sort(frames[seen[frames] >= 3])
+    if frames.size == 0:
+        raise ValueError("no frame has 3 markers detected in at least 2 cameras")
+    sub = det[:, frames].copy()
+    pixel = np.asarray(norm.pixel, dtype=float)
+    n_par = frames.size * (3 + 3 * skeleton.n_bones)
+    out = np.full(2, np.nan)
+    for _ in range(2):
+        # least-squares fits, then again without the points they leave > 5 SD off
+        # (confident outliers pull a least-squares fit and with it the inliers' residuals)
+        t, r = _deterministic(rig, skeleton, sub, norm)
+        res = (skeleton.project(rig, t, r) - sub) / pixel
+        ok = np.isfinite(res).all(axis=-1)
+        n_obs = 2 * int(ok.sum())
+        dof = n_obs / max(n_obs - n_par, 0.25 * n_obs)
+        for a in range(2):
+            e = np.abs(res[..., a][ok])
+            # 1.4826 x the median absolute residual: the SD of Gaussian noise
+            out[a] = (1.4826 * float(np.median(e))) ** 2 * dof if e.size else np.nan
+        if not np.isfinite(out).all():
+            break
+        far = ok & (np.abs(res) > 5.0 * np.sqrt(out)).any(axis=-1)
+        if not far.any():
+            break
+        sub[far] = np.nan
+    if not np.isfinite(out).all() or not (out > 0).all():
+        raise ValueError("the reprojection residuals of the best-detected frames are not usable")
+    return np.tile(out, n_cams * n_markers)
+
+
 def _velocity_init(params: dict, means: np.ndarray) -> tuple:
     """Start of EM for the position-velocity state from the random walk's EM result:
     ``μ0 = (μ̂_0, μ̂_1 − μ̂_0)``, ``V0 = diag(V0, 2 V0 + Q_v)``, ``V_z = diag(V_z / 10, Q_v)``
@@ -225,13 +292,10 @@ def _velocity_init(params: dict, means: np.ndarray) -> tuple:
     return mu0, v0, vz, params["Vx_diag"]
 
 
-def _velocity_worse(rw: list[dict], vel: list[dict]) -> str:
-    """Why the position-velocity fit is worse than the random walk's ('' if it is not):
-    fewer detections used (the filter lost the animal) or a lower marginal log-likelihood
-    of the detections, both from the last EM iteration of each."""
-    if not rw or not vel:
-        return ""
-    a, b = rw[-1], vel[-1]
+def _velocity_worse(a: dict, b: dict) -> str:
+    """Why the position-velocity fit ``b`` is worse than the random walk's ``a`` ('' if it is
+    not): fewer detections used (the filter lost the animal) or a lower marginal
+    log-likelihood of the detections; ``a`` and ``b`` are E-step statistics."""
     if b["used"] < 0.98 * a["used"]:
         return f"it used {b['used']} detection entries against {a['used']}"
     if b["log_likelihood"] < a["log_likelihood"]:
@@ -316,9 +380,10 @@ def _warn_implausible_fit(result: PoseResult, fit_px: float, factor: float = 3.0
 
 
 def _warn_em(result: PoseResult, max_iter: int, ll_tol: float) -> None:
-    """Say when EM ended at ``max_iter`` without converging, or when the marginal
-    log-likelihood of the model returned ended well below its best iteration (the unscented
-    E-step and the outlier gate do not guarantee a monotone rise; ``docs/tracking.md``)."""
+    """Say when EM ended at ``max_iter`` without converging, and when its marginal
+    log-likelihood fell well below its best iteration (the unscented E-step and the outlier
+    gate do not guarantee a monotone rise; ``docs/tracking.md``). The parameters returned are
+    those of the highest log-likelihood evaluated (``info["returned_iteration"]``)."""
     import warnings
 
     info = result.info
@@ -326,24 +391,30 @@ def _warn_em(result: PoseResult, max_iter: int, ll_tol: float) -> None:
     if not hist or info["interrupted"]:
         return
     name = info["motion"].replace("_", " ")
+    ll = np.array([h["log_likelihood"] for h in hist], dtype=float)
+    best = int(np.nanargmax(ll)) if np.isfinite(ll).any() else len(ll) - 1
+    info["best_iteration"] = best + 1
     if not info["converged"]:
         warnings.warn(
             f"EM stopped at max_iter={max_iter} without converging ({len(hist)} iterations of "
-            f"the {name} model): the poses are those of its last parameters, not of a "
-            "converged fit; check result.em_history or raise max_iter",
+            f"the {name} model; log-likelihood {ll[-1]:.6g}, best {ll[best]:.6g} at iteration "
+            f"{best + 1}): the poses are those of its best parameters, not of a converged fit; "
+            "check result.em_history or raise max_iter",
             stacklevel=3,
         )
-    ll = np.array([h["log_likelihood"] for h in hist], dtype=float)
-    best = int(np.nanargmax(ll)) if np.isfinite(ll).any() else len(ll) - 1
     drop = ll[best] - ll[-1]
     if np.isfinite(drop) and drop > 10.0 * ll_tol * max(hist[-1]["used"], 1):
+        kept = info.get("returned_iteration")
+        which = (
+            f"the parameters returned are those of iteration {kept}"
+            if kept is not None
+            else "the last parameters scored as high again and are returned"
+        )
         warnings.warn(
             f"EM's marginal log-likelihood peaked at iteration {best + 1} ({ll[best]:.6g}) "
-            f"and ended at {ll[-1]:.6g} ({name} model): the parameters returned are the last, "
-            "not the best; check result.em_history",
+            f"and fell to {ll[-1]:.6g} ({name} model): {which}; check result.em_history",
             stacklevel=3,
         )
-    info["best_iteration"] = best + 1
 
 
 def track(
@@ -360,7 +431,7 @@ def track(
     method: str = "ukf",
     gate: float | None = DEFAULT_GATE,
     normalization: Normalization | None = None,
-    noise: float = 1e-3,
+    noise: float = 1e-4,
     marker_names: Sequence[str] | None = None,
     stop: str = "loglik",
     ll_tol: float = DEFAULT_LL_TOL,
@@ -414,9 +485,11 @@ def track(
         (beyond the paper), started from the random walk's EM result: fast movements do not
         lag, and stretches without detections are bridged by smooth curves whose SD grows
         with the gap; where the prior is too broad (after such a stretch) the update is
-        linearised about the random walk's posterior. ``"auto"`` (default): velocity, unless
-        its fit uses fewer detections or has a lower marginal log-likelihood than the random
-        walk's; ``info["motion"]`` says which was used and ``info["motion_note"]`` why
+        linearised about the random walk's posterior. ``"auto"`` (default): after the random
+        walk's EM, one E-step scores the velocity model at its start against it; the velocity
+        EM runs only if that start scores higher, and is kept only if its fit does not use
+        fewer detections or reach a lower marginal log-likelihood than the random walk's;
+        ``info["motion"]`` says which was used and ``info["motion_note"]`` why
         (``docs/tracking.md``).
     relinearize : int
         At most this many iterated posterior linearisations of a frame's update where the
@@ -433,7 +506,10 @@ def track(
     normalization : Normalization, optional
         Sec. 3.3 constants (default: :func:`default_normalization`).
     noise : float
-        Initial diagonal of ``V0``, ``V_z`` and ``V_x`` (sec. 4.7: 0.001).
+        Initial diagonal of ``V0`` and ``V_z`` in normalised state units (1e-4; sec. 4.7
+        has 0.001, which lets EM settle at worse optima on real motion,
+        ``docs/tracking.md``). ``V_x`` starts at the detections' own noise
+        (:func:`initial_vx`); ``info["vx_init_px"]`` records it (px, per image axis).
     marker_names : sequence of str, optional
         Names of the detection columns, mapped to skeleton markers (DeepLabCut body parts,
         ``marker_<name>_start`` and ``spot_<name>`` spellings accepted).
@@ -442,6 +518,10 @@ def track(
     -------
     PoseResult
         Joints ``(T, J, 3)`` with posterior std, markers, poses, state moments, EM history.
+        EM returns the parameters of the highest marginal log-likelihood it evaluated
+        (``info["returned_iteration"]``, ``info["log_likelihood"]``). The fits run with the
+        rig and skeleton in units of ``c_t``, so the same detections give the same result
+        in any length unit.
 
     Raises
     ------
@@ -477,12 +557,15 @@ def track(
     # sanity checks that speak: declared units, camera order, then units from the data
     # (each refuses with the fix)
     check_units(rig, skeleton)
-    fit_px = check_camera_order(rig, skeleton, det, norm)
+    # from here on the world is in units of c_t (unit-free to rounding)
+    rig_u, sk_u, norm_u, c_t = _in_rig_units(rig, skeleton, norm)
+    fit_px = check_camera_order(rig_u, sk_u, det, norm_u)
     check_scale(rig, skeleton, det)
     empty = _empty_stretches(det)
     sm = StateMap(skeleton, norm, joint_limits)
     if method == "deterministic":
-        t, r = _deterministic(rig, skeleton, det, norm)
+        t, r = _deterministic(rig_u, sk_u, det, norm_u)
+        t = t * c_t
         joints, markers = skeleton.forward(t, r)
         result = PoseResult(
             skeleton=skeleton, rig=rig, state_map=sm, joints=joints,
@@ -498,15 +581,16 @@ def track(
             print(result.summary(), file=sys.stderr)
         return result
 
-    f0, t0, r0 = _first_pose(rig, skeleton, det, norm)
-    mu0 = sm.start_state(t0, r0)
+    f0, t0, r0 = _first_pose(rig_u, sk_u, det, norm_u)
+    mu0 = StateMap(sk_u, norm_u, joint_limits).start_state(t0, r0)
+    vx0 = initial_vx(rig_u, sk_u, det, norm_u)
     x = norm.normalize_pixels(det).transpose(1, 0, 2, 3)  # (T, C, M, 2)
     lim = skeleton.joint_limits
 
     def make_tracker(order: int):
         return _native.NativeTracker(
-            skeleton._native, rig.get_params(), np.ascontiguousarray(lim[..., 0]),
-            np.ascontiguousarray(lim[..., 1]), norm._tuple(), bool(joint_limits),
+            sk_u._native, rig_u.get_params(), np.ascontiguousarray(lim[..., 0]),
+            np.ascontiguousarray(lim[..., 1]), norm_u._tuple(), bool(joint_limits),
             np.ascontiguousarray(x), relinearize=int(relinearize), order=order,
         )  # fmt: skip
 
@@ -519,14 +603,12 @@ def track(
 
     native = make_tracker(1)
     eye = np.eye(native.n_state) * noise
-    n_x = x[0].size
     t_init = time.perf_counter() - t_start
-    # Alg. 11 with the random walk (sec. 4.7 initialisation)
-    params, history, converged, interrupted = run(
-        native, (mu0, eye, eye.copy(), np.full(n_x, noise)), max_iter
-    )
+    # Alg. 11 with the random walk: mu0 of sec. 4.7, V0 = V_z = noise I, V_x from the data
+    params, history, converged, interrupted = run(native, (mu0, eye, eye.copy(), vx0), max_iter)
     for h in history:
         h["motion"] = "random_walk"
+    outcome = native.em_outcome()
     used = "velocity" if motion == "auto" else motion
     motion_note = ""
     if used == "velocity" and interrupted:
@@ -534,21 +616,38 @@ def track(
     if used == "velocity" and not interrupted:
         # EM of the position-velocity model started from the random walk's answer (from
         # the sec. 4.7 start it wanders: docs/tracking.md)
-        rw = (native, params, history, converged)
+        rw = (native, params, history, converged, outcome)
         init = _velocity_init(params, native.means())
         hint = (native.means(), native.covs())
         native = make_tracker(2)
         # where the velocity's prior is too broad (after stretches without detections), the
         # update is linearised about the random walk's posterior (the model is unchanged)
         native.set_linearization_hint(*hint)
-        params, more, converged, interrupted = run(native, init, max(1, max_iter - len(history)))
-        for h in more:
-            h["motion"] = "velocity"
-        worse = _velocity_worse(history, more)
+        worse = ""
+        if motion == "auto" and noise_model == "gauss":
+            # the choice: one E-step of the velocity model at its start against the random
+            # walk's optimum (log-likelihoods of the same detections, unit-free); EM of the
+            # velocity model only raises its score, so a start that already scores higher
+            # decides for it, and one that scores lower is not pursued. (The Student-t
+            # model's first E-step has no outlier weights yet: there the two EMs' ends are
+            # compared.)
+            first = native.e_step(*init, gate=gate_threshold(gate))
+            worse = _velocity_worse(outcome["final"], first)
+            if worse:
+                worse = f"at its start {worse}"
+        if not worse:
+            params, more, converged, interrupted = run(
+                native, init, max(1, max_iter - len(history))
+            )
+            for h in more:
+                h["motion"] = "velocity"
+            history = history + more
+            worse = _velocity_worse(outcome["final"], native.em_outcome()["final"])
+            outcome = native.em_outcome()
         if worse:
             if motion == "auto":
-                native, params, _, converged = rw
-                used, motion_note = "random_walk", worse
+                native, params, _, converged, outcome = rw
+                used, motion_note = "random_walk", f"the velocity model fits worse: {worse}"
             else:
                 import warnings
 
@@ -557,8 +656,12 @@ def track(
                     f"({worse}); consider motion='random_walk'",
                     stacklevel=2,
                 )
-        history = history + more
     poses, joints, markers, joints_std, markers_std = native.posterior()
+    # back to the caller's length unit
+    poses[:, :3] *= c_t
+    joints, markers, joints_std, markers_std = (
+        a * c_t for a in (joints, markers, joints_std, markers_std)
+    )
     means, covs = native.means(), native.covs()
     mask = native.mask().transpose(1, 0, 2, 3)[..., 0]  # (C, T, M)
     t = poses[:, :3]
@@ -576,6 +679,9 @@ def track(
             "empty_stretches": empty,
             "params": params, "status": mask, "markers_std": markers_std,
             "first_frame": f0, "mu0_init": mu0, "joint_limits": bool(joint_limits),
+            "vx_init_px": np.sqrt(vx0[:2]) * np.asarray(norm.pixel, dtype=float),
+            "returned_iteration": outcome["returned_iteration"],
+            "log_likelihood": float(outcome["final"]["log_likelihood"]),
             "check_fit_px": fit_px,
             "normalization": _norm_dict(norm),
             "seconds_init": t_init, "seconds": time.perf_counter() - t_start,
