@@ -34,6 +34,8 @@ Cases (240 frames by default; ``--quick``: 120):
              bones wearing the rat model's 43 markers (``benches/representability.py``),
              posed by the exact per-frame fit of its joints (3e-11 mm), ``dlc`` detections; no
              joint limits. Skipped without the file.
+``real-hard``, ``real-gap``, ``real-mm``, ``real-squares``: the real motion with the
+             detections of ``hard``, ``gap``, ``mm``, ``squares``.
 
 Peer settings: ``scale_smooth=4, scale_length=2`` (issue 12), rigid constraints between every
 pair of markers on the same joint (``skeleton.marker_joints``), and anipose's defaults for the
@@ -44,7 +46,8 @@ anipose is in mm for the cm cases (anipose writes mm), in the case's units other
 Run from the repository root (needs ``pip install aniposelib`` or the ``bench`` extra;
 ``--no-peer`` runs acm-rs alone)::
 
-    python benches/compare_anipose.py [--cases dlc hard gap burst mm squares real]
+    python benches/compare_anipose.py [--cases dlc hard gap burst mm squares real real-hard
+        real-gap real-mm real-squares]
         [--frames 240] [--seed 0] [--quick] [--no-peer] [--json PATH] [--pose PATH]
 """
 
@@ -67,7 +70,10 @@ import acm_rs
 from acm_rs import datasets, models
 from acm_rs.demo import demo_rig
 
-CASES = ("dlc", "hard", "gap", "burst", "mm", "squares", "real")
+SYNTHETIC_CASES = ("dlc", "hard", "gap", "burst", "mm", "squares")
+#: Real motion with the detections of a synthetic case (``real`` = ``real-dlc``).
+REAL_CASES = ("real", "real-hard", "real-gap", "real-mm", "real-squares")
+CASES = SYNTHETIC_CASES + REAL_CASES
 SQUARE_CM = 6.5
 #: Peer options: issue 12 for the first two, anipose's DEFAULT_CONFIG for the others.
 PEER_OPTIONS = {
@@ -201,6 +207,9 @@ def real_motion(path, n_frames: int) -> tuple[acm_rs.Skeleton, np.ndarray, np.nd
 def make_case(name: str, n_frames: int, seed: int, pose_path=None) -> Case:
     """Build one case (``dlc``, ``gap``, ``mm`` and ``squares`` share the animal, the motion
     and the detections: only the missing frames or the units differ)."""
+    real = name.startswith("real")
+    if real:
+        name = name.partition("-")[2] or "dlc"
     sk = datasets.individual_skeleton(models.rat(), seed=seed + 1)
     rig = demo_rig()
     frames = np.arange(n_frames)
@@ -212,9 +221,11 @@ def make_case(name: str, n_frames: int, seed: int, pose_path=None) -> Case:
         t, r, ratio = burst_motion(sk, n_frames, seed + 2, start, length, 2.5)
         windows.append((f"burst ({length} fr.)", (frames > start) & (frames <= start + length)))
         notes.append(f"marker speed over the burst: {ratio:.2f} x the median speed")
-    elif name == "real":
+    elif real:
         sk, t, r = real_motion(pose_path, n_frames)
         notes.append(f"real rat motion: {len(t)} time points of the authors' pose.npy")
+        n_frames, frames = len(t), np.arange(len(t))
+        n_window = min(40, n_frames // 6)
     else:
         t, r = datasets.smooth_motion(sk, n_frames, seed=seed + 2)
     if name == "hard":
@@ -239,7 +250,8 @@ def make_case(name: str, n_frames: int, seed: int, pose_path=None) -> Case:
         windows.append((f"after the gap ({n_window} fr.)", after))
         desc += f", no detection at all in frames {gap.argmax()}-{gap.argmax() + n_window - 1}"
     joints, markers = datasets.true_positions(sk, t, r)
-    case = Case(name, desc, rig, sk, det, lik, joints, markers, 10.0, sk, rig, windows, notes)
+    label = f"real-{name}" if real and name != "dlc" else ("real" if real else name)
+    case = Case(label, desc, rig, sk, det, lik, joints, markers, 10.0, sk, rig, windows, notes)
     if name == "mm":
         case.skeleton, case.rig = unit_copy(sk, "mm", 10.0), rig.scaled(10.0, units="mm")
         case.joints, case.markers, case.mm_per_unit = joints * 10, markers * 10, 1.0
@@ -323,6 +335,12 @@ def run_acm(case: Case, **options) -> dict:
         err,
         coverage95=float(inside.mean()),
         em_iterations=len(res.em_history),
+        motion=res.info["motion"],
+        motion_note=res.info["motion_note"],
+        em_iterations_by_model={
+            m: sum(h["motion"] == m for h in res.em_history) for m in ("random_walk", "velocity")
+        },
+        returned_iteration=res.info.get("returned_iteration"),
         em_last_delta=float(res.em_history[-1]["delta"]) if res.em_history else None,
         converged=bool(res.info.get("converged")),
         wall_s=wall,
@@ -453,6 +471,13 @@ def print_case(case: Case, acm: dict, peer: dict | None) -> None:
         label = f"  ... {w['label']}"
         print(f"   {label:36s} {'-':>10s} {cov:>10s}")
     em = f"{acm['em_iterations']}{'' if acm['converged'] else ' (max)'}"
+    by = acm["em_iterations_by_model"]
+    print(
+        f"   {'motion model':36s} {'-':>10s} {acm['motion']:>10s}   (EM iterations: random "
+        f"walk {by['random_walk']}, velocity {by['velocity']}"
+        + (f"; {acm['motion_note']}" if acm["motion_note"] else "")
+        + ")"
+    )
     print(
         f"   {'EM iterations':36s} {'-':>10s} {em:>10s}   (last delta "
         f"{_fmt(acm['em_last_delta'], '.3f')}; {acm['gated']} detections gated)"
@@ -475,7 +500,7 @@ def print_case(case: Case, acm: dict, peer: dict | None) -> None:
 def print_summary(rows: list[tuple[Case, dict, dict | None]]) -> None:
     print("\n== summary (errors in mm: anipose / acm-rs, ratio acm-rs/anipose) ==")
     head = (
-        f"{'case':8s} {'marker median':>20s} {'joint median':>20s} {'joint p95':>20s} "
+        f"{'case':12s} {'marker median':>20s} {'joint median':>20s} {'joint p95':>20s} "
         f"{'joint max':>22s} {'cover':>6s} {'EM':>4s} {'wall s':>16s}"
     )
     print(head)
@@ -489,7 +514,7 @@ def print_summary(rows: list[tuple[Case, dict, dict | None]]) -> None:
         wall = f"{_fmt(peer['wall_s'] if peer else None, '.1f')}/{acm['wall_s']:.1f}"
         em = f"{acm['em_iterations']}{'' if acm['converged'] else '!'}"
         print(
-            f"{case.name:8s} {cell('marker', 'median', acm, peer)} "
+            f"{case.name:12s} {cell('marker', 'median', acm, peer)} "
             f"{cell('joint', 'median', acm, peer)} {cell('joint', 'p95', acm, peer)} "
             f"{cell('joint', 'max', acm, peer, 22)} {100 * acm['coverage95']:5.1f}% {em:>4s} "
             f"{wall:>16s}"
@@ -536,9 +561,9 @@ def main(argv: list[str] | None = None) -> int:
     import representability
 
     pose_path = args.pose or representability.default_pose_path()
-    if "real" in args.cases and pose_path is None:
-        print("case 'real' skipped: no pose.npy (--pose or ACM_RS_AUTHORS_POSE)")
-        args.cases = [c for c in args.cases if c != "real"]
+    if pose_path is None and set(args.cases) & set(REAL_CASES):
+        print("real-motion cases skipped: no pose.npy (--pose or ACM_RS_AUTHORS_POSE)")
+        args.cases = [c for c in args.cases if c not in REAL_CASES]
     n_frames = args.frames
     if args.quick and "--frames" not in (argv if argv is not None else sys.argv):
         n_frames = 120
