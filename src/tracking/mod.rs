@@ -713,7 +713,9 @@ impl<E: Emission> Tracker<E> {
         let mut returned = None;
         if let Some((ll, k, p)) = best {
             let margin = opts.ll_tol.unwrap_or(1e-6) * final_stats.used.max(1) as f64;
-            if !(final_stats.log_lik >= ll - margin) {
+            // (a NaN final log-likelihood also falls back to the best parameters)
+            let holds = final_stats.log_lik >= ll - margin;
+            if !holds {
                 final_stats = self.e_step(&p, opts.gate)?;
                 params = p;
                 returned = Some(k);
