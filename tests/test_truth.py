@@ -162,6 +162,30 @@ def test_real_motion_is_representable():
     assert lit.max() * 10 > 1.0
 
 
+@pytest.mark.skipif(POSE is None, reason="no pose.npy of the authors (ACM_RS_AUTHORS_POSE)")
+def test_tracking_real_motion_does_not_depend_on_the_unit():
+    """Issue 26 item 2 on real motion: the authors' rat (60 time points) wearing the rat
+    model's markers, DeepLabCut-like detections; the same pixels with rig and skeleton in cm
+    and in mm give the same joints to 1 % of the median error, with the default motion
+    choice and EM run to its own stop."""
+    names, joints = representability.load_authors_pose(POSE)
+    joints = joints[:60]
+    sk = representability.dressed_skeleton(names, joints[0])
+    err, t, r = representability.fit_poses(sk, joints)
+    assert err.max() < 1e-4
+    t = t - joints.reshape(-1, 3).mean(axis=0) * [1.0, 1.0, 0.0]  # into the arena's middle
+    rig = demo_rig()
+    det, lik = datasets.dlc_like_detections(rig, sk, t, r, missing=0.15, outliers=0.02, seed=5)
+    true_joints, _ = datasets.true_positions(sk, t, r)
+    ref = acm_rs.track(rig, sk, det, likelihood=lik)
+    median_err = np.median(np.linalg.norm(ref.joints - true_joints, axis=-1))
+    mm = acm_rs.track(rig.scaled(10.0, units="mm"), sk.scaled(10.0, "mm"), det, likelihood=lik)
+    assert mm.info["motion"] == ref.info["motion"]
+    assert len(mm.em_history) == len(ref.em_history)
+    diff = np.linalg.norm(mm.joints / 10.0 - ref.joints, axis=-1)
+    assert diff.max() < 0.01 * median_err, (diff.max(), median_err)
+
+
 def _hub() -> acm_rs.Skeleton:
     """A lab-style skeleton whose root is a hub with three children (no single global bone)."""
     names = ["centre", "head", "nose", "tail", "paw_l", "paw_r"]
