@@ -486,8 +486,8 @@ def track(
         lag, and stretches without detections are bridged by smooth curves whose SD grows
         with the gap; where the prior is too broad (after such a stretch) the update is
         linearised about the random walk's posterior. ``"auto"`` (default): after the random
-        walk's EM, one E-step scores the velocity model at its start against it; the velocity
-        EM runs only if that start scores higher, and is kept only if its fit does not use
+        walk's EM, one filter pass scores the velocity model at its start against it; the
+        velocity EM runs only if that start scores higher, and is kept only if its fit does not use
         fewer detections or reach a lower marginal log-likelihood than the random walk's;
         ``info["motion"]`` says which was used and ``info["motion_note"]`` why
         (``docs/tracking.md``).
@@ -630,8 +630,8 @@ def track(
             # velocity model only raises its score, so a start that already scores higher
             # decides for it, and one that scores lower is not pursued. (The Student-t
             # model's first E-step has no outlier weights yet: there the two EMs' ends are
-            # compared.)
-            first = native.e_step(*init, gate=gate_threshold(gate))
+            # compared.) The marginal log-likelihood is the filter's: no smoothing needed.
+            first = native.e_step(*init, gate=gate_threshold(gate), smooth=False)
             worse = _velocity_worse(outcome["final"], first)
             if worse:
                 worse = f"at its start {worse}"
