@@ -22,7 +22,7 @@ Input bundle (NPZ; write it with acm_rs.tracking.write_bundle; see docs/tracking
   marker_offsets (M,3), joint_limits (B,3,2) rad, cameras (C,15), normalization (4,),
   detections (C,T,M,2) px with NaN = missing, mu0 (n,); optional likelihood (C,T,M),
   pcutoff, max_iter, tol, ll_tol (log-likelihood stop, nats per measurement; NaN = Alg. 13
-  with tol), gate (chi-square threshold; NaN = off), noise (start of V0, V_z; 1e-4),
+  with tol), gate (chi-square threshold; NaN = off), noise (start of V0, V_z; 2e-4),
   vx_init (C*M*2,) start of diag(V_x) (default: noise), joint_limits_on.
 
 Output (NPZ, written atomically): t (T,3), r (T,B,3), joints (T,J,3), joints_std,

@@ -211,7 +211,7 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
     let noise = checked(
         m,
         "noise",
-        1e-4,
+        2e-4,
         |v| v.is_finite() && v > 0.0,
         "a finite number > 0",
         what,

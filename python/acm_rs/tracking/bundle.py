@@ -21,6 +21,7 @@ from .result import PoseResult, em_history
 from .track import (
     DEFAULT_GATE,
     DEFAULT_LL_TOL,
+    DEFAULT_NOISE,
     _first_pose,
     _in_rig_units,
     _measurements,
@@ -43,7 +44,7 @@ def write_bundle(
     tol: float = 0.05,
     gate: float | None = DEFAULT_GATE,
     normalization: Normalization | None = None,
-    noise: float = 1e-4,
+    noise: float = DEFAULT_NOISE,
     marker_names=None,
     stop: str = "loglik",
     ll_tol: float = DEFAULT_LL_TOL,

@@ -32,6 +32,11 @@ DEFAULT_GATE = 0.999
 #: the 6 that Alg. 13's tol = 0.05 allows; docs/tracking.md).
 DEFAULT_LL_TOL = 1e-3
 
+#: Default start of ``V0`` and ``V_z`` (diagonal, normalised state units): measured on real
+#: and synthetic rat motion (docs/tracking.md, "The start"; the paper's 0.001 settles at worse
+#: optima on real motion, 1e-4 costs the synthetic rat's tail and coverage).
+DEFAULT_NOISE = 2e-4
+
 #: Motion models and the order of their state (1: position, the paper's random walk;
 #: 2: position and velocity).
 MOTION_ORDER = {"random_walk": 1, "velocity": 2, "auto": 2}
@@ -431,7 +436,7 @@ def track(
     method: str = "ukf",
     gate: float | None = DEFAULT_GATE,
     normalization: Normalization | None = None,
-    noise: float = 1e-4,
+    noise: float = DEFAULT_NOISE,
     marker_names: Sequence[str] | None = None,
     stop: str = "loglik",
     ll_tol: float = DEFAULT_LL_TOL,
@@ -506,7 +511,7 @@ def track(
     normalization : Normalization, optional
         Sec. 3.3 constants (default: :func:`default_normalization`).
     noise : float
-        Initial diagonal of ``V0`` and ``V_z`` in normalised state units (1e-4; sec. 4.7
+        Initial diagonal of ``V0`` and ``V_z`` in normalised state units (2e-4; sec. 4.7
         has 0.001, which lets EM settle at worse optima on real motion,
         ``docs/tracking.md``). ``V_x`` starts at the detections' own noise
         (:func:`initial_vx`); ``info["vx_init_px"]`` records it (px, per image axis).
