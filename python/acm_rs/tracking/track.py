@@ -630,12 +630,12 @@ def track(
         native.set_linearization_hint(*hint)
         worse = ""
         if motion == "auto" and noise_model == "gauss":
-            # the choice: one E-step of the velocity model at its start against the random
+            # the choice: one filter pass of the velocity model at its start against the random
             # walk's optimum (log-likelihoods of the same detections, unit-free); EM of the
             # velocity model only raises its score, so a start that already scores higher
             # decides for it, and one that scores lower is not pursued. (The Student-t
-            # model's first E-step has no outlier weights yet: there the two EMs' ends are
-            # compared.) The marginal log-likelihood is the filter's: no smoothing needed.
+            # model's first pass has no outlier weights yet: there the two EMs' ends are
+            # compared.) The marginal log-likelihood is the filter's: no smoother needed.
             first = native.e_step(*init, gate=gate_threshold(gate), smooth=False)
             worse = _velocity_worse(outcome["final"], first)
             if worse:
