@@ -81,8 +81,12 @@ def labels_in_skeleton_order(
     return out
 
 
+#: Fraction of a camera's points that a likelihood cutoff may drop before it is said.
+DROPPED_WARNING = 0.5
+
+
 def mask_by_likelihood(
-    points: np.ndarray, likelihood: np.ndarray | None, pcutoff: float
+    points: np.ndarray, likelihood: np.ndarray | None, pcutoff: float, warn: bool = True
 ) -> np.ndarray:
     """Points with a likelihood below ``pcutoff`` (or NaN) set to NaN (a copy).
 
@@ -91,15 +95,19 @@ def mask_by_likelihood(
     points : array_like, shape (n_cams, F, K, 2)
         Pixels, in the columns' own order.
     likelihood : array_like, shape (n_cams, F, K), or None
-        DeepLabCut confidences in [0, 1]; None returns ``points`` unchanged (manual labels).
+        Confidences in [0, 1] (DeepLabCut likelihoods; SLEAP scores as :mod:`acm_rs.sleap`
+        reads them, clipped to 1); None returns ``points`` unchanged (manual labels).
     pcutoff : float
         In [0, 1].
+    warn : bool
+        Warn when the cutoff drops more than half of a camera's points (a cutoff made for
+        another tool's scores, e.g. DeepLabCut's 0.9 on SLEAP scores).
 
     Raises
     ------
     ValueError
         Wrong shapes, a cutoff outside [0, 1], or likelihoods outside [0, 1] (e.g. a 0-100
-        scale), naming the largest value.
+        scale, or SLEAP scores not read by :mod:`acm_rs.sleap`), naming the largest value.
     """
     pts = np.array(points, dtype=np.float64)
     if likelihood is None:
@@ -114,11 +122,44 @@ def mask_by_likelihood(
         )
     finite = lik[np.isfinite(lik)]
     if finite.size and (finite.min() < 0.0 or finite.max() > 1.0):
+        hi = float(finite.max())
+        if hi <= 2.0:
+            # SLEAP's point scores are confidence-map peaks and reach ~1.35; dividing them by
+            # 100 would drop every point
+            hint = (" (SLEAP scores exceed 1: read SLEAP files with acm_rs.sleap, which clips "
+                    "them to 1, or clip them with numpy.clip(scores, 0, 1))")  # fmt: skip
+        elif hi <= 100.0:
+            hint = " (a 0-100 scale? divide by 100)"
+        else:
+            hint = ""
         raise ValueError(
             f"likelihoods must lie in [0, 1] (DeepLabCut's scale); these range from "
-            f"{finite.min():g} to {finite.max():g}" + (" (a 0-100 scale? divide by 100)"
-                                                       if finite.max() <= 100 else "")
-        )  # fmt: skip
+            f"{finite.min():g} to {hi:g}{hint}"
+        )
     with np.errstate(invalid="ignore"):
-        pts[~(lik >= pcutoff)] = np.nan
+        drop = ~(lik >= pcutoff)
+    present = np.isfinite(pts).all(axis=-1)
+    if warn:
+        _warn_dropped(present, drop, pcutoff)
+    pts[drop] = np.nan
     return pts
+
+
+def _warn_dropped(present: np.ndarray, drop: np.ndarray, pcutoff: float) -> None:
+    """One warning naming the cameras whose points a cutoff mostly drops."""
+    import warnings
+
+    n = present.reshape(len(present), -1).sum(axis=1)
+    lost = (present & drop).reshape(len(present), -1).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where(n > 0, lost / np.maximum(n, 1), 0.0)
+    bad = np.flatnonzero(frac > DROPPED_WARNING)
+    if bad.size:
+        which = ", ".join(f"camera {c}: {100 * frac[c]:.0f} %" for c in bad)
+        warnings.warn(
+            f"pcutoff {pcutoff:g} drops most of the detected points of {which} "
+            f"(of {int(n.sum())} points in all, {int(lost.sum())} dropped): check that the "
+            "cutoff suits the scores' source (DeepLabCut likelihoods; SLEAP scores are on "
+            "another scale, and proofread SLEAP labels carry likelihood 1)",
+            stacklevel=3,
+        )

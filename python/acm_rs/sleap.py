@@ -61,7 +61,9 @@ def read_sleap_analysis(path: str | Path, individual: str | None = None):
     points : numpy.ndarray, shape (n_frames, n_nodes, 2)
         Pixels, NaN where the node was not predicted.
     likelihood : numpy.ndarray, shape (n_frames, n_nodes)
-        SLEAP's point scores (NaN where not predicted).
+        SLEAP's point scores clipped to [0, 1] (they are confidence-map peaks and exceed 1
+        for many good points: up to ~1.35); 1 for points of user (proofread) instances,
+        which SLEAP stores without a score (NaN); NaN where not predicted.
     frames : numpy.ndarray of int, shape (n_frames,)
         0, 1, ... (analysis files hold every frame of the video from 0).
     bodyparts : list of str
@@ -87,13 +89,23 @@ def read_sleap_analysis(path: str | Path, individual: str | None = None):
     if k is None:
         raise ValueError(f"{p}: no tracks")
     points = tracks[k].transpose(2, 1, 0)  # (n_frames, n_nodes, 2)
+    seen = np.isfinite(points[..., 0])
     if scores is not None:
-        lik = scores[k].T.copy()
-        lik[~np.isfinite(points[..., 0])] = np.nan
+        lik = _scores_as_likelihood(scores[k].T.copy(), seen)
     else:
-        lik = np.where(np.isfinite(points[..., 0]), 1.0, np.nan)
+        lik = np.where(seen, 1.0, np.nan)
     frames = np.arange(points.shape[0], dtype=np.int64)
     return np.ascontiguousarray(points), lik, frames, nodes
+
+
+def _scores_as_likelihood(scores: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """SLEAP point scores as likelihoods in [0, 1]: clipped (confidence-map peaks exceed 1),
+    1 where a point exists without a score (user-labelled, proofread), NaN where none."""
+    with np.errstate(invalid="ignore"):
+        lik = np.clip(scores, 0.0, 1.0)
+    lik[seen & ~np.isfinite(lik)] = 1.0
+    lik[~seen] = np.nan
+    return lik
 
 
 def read_slp(path: str | Path, individual: str | None = None, video: int | str | None = None):
@@ -110,7 +122,8 @@ def read_slp(path: str | Path, individual: str | None = None, video: int | str |
     Returns
     -------
     points, likelihood, frames, bodyparts
-        As :func:`read_sleap_analysis`; user-labelled points have likelihood 1. Rows are the
+        As :func:`read_sleap_analysis` (scores clipped to [0, 1]); user-labelled points have
+        likelihood 1. Rows are the
         frames 0 .. last labelled frame; frames without an instance are NaN.
     """
     p = Path(path)
@@ -143,9 +156,7 @@ def read_slp(path: str | Path, individual: str | None = None, video: int | str |
         if np.isfinite(arr[:, 1:, :, 0]).any():
             raise ValueError(f"{p}: several untracked instances per frame; track them in SLEAP")
     points = np.ascontiguousarray(arr[:, k, :, :2], dtype=float)
-    lik = np.array(arr[:, k, :, 2], dtype=float)
     seen = np.isfinite(points[..., 0])
-    lik[seen & ~np.isfinite(lik)] = 1.0  # user-labelled points carry no score
-    lik[~seen] = np.nan
+    lik = _scores_as_likelihood(np.array(arr[:, k, :, 2], dtype=float), seen)
     frames = np.arange(points.shape[0], dtype=np.int64)
     return points, lik, frames, nodes

@@ -70,7 +70,7 @@ class _Model:
 
     def detections(self, det: np.ndarray, lik: np.ndarray | None) -> np.ndarray:
         """Raw window ``(C, W, K, 2)`` → skeleton order, below-cutoff and partial points NaN."""
-        masked = mask_by_likelihood(det, lik, self.pcutoff)
+        masked = mask_by_likelihood(det, lik, self.pcutoff, warn=False)
         out = labels_in_skeleton_order(masked, self.skeleton, self.rig, self.marker_names).copy()
         out[~np.isfinite(out).all(axis=-1)] = np.nan
         return out
