@@ -22,12 +22,11 @@ from .track import (
     DEFAULT_GATE,
     DEFAULT_LL_TOL,
     DEFAULT_NOISE,
-    _first_pose,
+    _em_start,
     _in_rig_units,
     _measurements,
     default_normalization,
     gate_threshold,
-    initial_vx,
 )
 
 
@@ -66,9 +65,7 @@ def write_bundle(
     norm = normalization or default_normalization(rig, skeleton)
     # the start as track computes it (in units of c_t, so the same in any length unit)
     rig_u, sk_u, norm_u, _ = _in_rig_units(rig, skeleton, norm)
-    _, t0, r0 = _first_pose(rig_u, sk_u, det, norm_u)
-    mu0 = StateMap(sk_u, norm_u, joint_limits).start_state(t0, r0)
-    vx_init = initial_vx(rig_u, sk_u, det, norm_u)
+    _, mu0, vx_init = _em_start(rig_u, sk_u, det, norm_u, joint_limits)
     g = gate_threshold(gate)
     arrays = {
         "parents": skeleton.parents.astype(np.int64),

@@ -280,6 +280,18 @@ def initial_vx(
     return np.tile(out, n_cams * n_markers)
 
 
+def _em_start(
+    rig_u: CameraRig, sk_u: Skeleton, det: np.ndarray, norm_u: Normalization, joint_limits: bool
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """EM's start for the rig and skeleton of :func:`_in_rig_units`: ``(first frame, mu0,
+    diag V_x)``, ``mu0`` from the first well-detected frame's fit (sec. 4.7), ``V_x`` from
+    the detections' noise (:func:`initial_vx`). Shared by :func:`track` and the bundles of
+    ``acm-smooth``, which must start alike."""
+    f0, t0, r0 = _first_pose(rig_u, sk_u, det, norm_u)
+    mu0 = StateMap(sk_u, norm_u, joint_limits).start_state(t0, r0)
+    return f0, mu0, initial_vx(rig_u, sk_u, det, norm_u)
+
+
 def _velocity_init(params: dict, means: np.ndarray) -> tuple:
     """Start of EM for the position-velocity state from the random walk's EM result:
     ``μ0 = (μ̂_0, μ̂_1 − μ̂_0)``, ``V0 = diag(V0, 2 V0 + Q_v)``, ``V_z = diag(V_z / 10, Q_v)``
@@ -586,9 +598,7 @@ def track(
             print(result.summary(), file=sys.stderr)
         return result
 
-    f0, t0, r0 = _first_pose(rig_u, sk_u, det, norm_u)
-    mu0 = StateMap(sk_u, norm_u, joint_limits).start_state(t0, r0)
-    vx0 = initial_vx(rig_u, sk_u, det, norm_u)
+    f0, mu0, vx0 = _em_start(rig_u, sk_u, det, norm_u, joint_limits)
     x = norm.normalize_pixels(det).transpose(1, 0, 2, 3)  # (T, C, M, 2)
     lim = skeleton.joint_limits
 
