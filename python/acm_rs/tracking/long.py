@@ -56,6 +56,7 @@ from ..camera import CameraRig
 from ..learning import check_scale, check_units
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
+from .result import PoseResult
 from .streaming import forward_pass, report_poor_fit, smooth_streaming
 from .track import (
     DEFAULT_GATE,
@@ -64,6 +65,7 @@ from .track import (
     DEFAULT_NOISE,
     MOTION_ORDER,
     _first_pose,
+    _measurements,
     _norm_dict,
     _on_terminal,
     _Printer,
@@ -81,6 +83,7 @@ from .windows import (
     _Source,
     close_output,
     frame_px,
+    read_chunked,
     smooth_window,
 )
 
@@ -729,6 +732,7 @@ def track_long(
     gate: float | None = DEFAULT_GATE,
     relinearize: int = 10,
     normalization: Normalization | None = None,
+    noise: float = DEFAULT_NOISE,
     vz_shrinkage: float = 0.8,
     method: str = "auto",
     poor_fit: float | None = 4.0,
@@ -811,7 +815,7 @@ def track_long(
     check_scale(rig, skeleton, first)
     fit = learn_windows(
         rig, skeleton, windows_det, norm, motion=motion, joint_limits=joint_limits,
-        max_iter=max_iter, ll_tol=ll_tol, gate=gate, relinearize=relinearize,
+        max_iter=max_iter, ll_tol=ll_tol, gate=gate, noise=noise, relinearize=relinearize,
         progress=progress, windows=wins, workers=workers,
     )  # fmt: skip
     del windows_det
@@ -848,6 +852,68 @@ def track_long(
     run["path"] = str(path)
     run["seconds"] = time.perf_counter() - t_start
     return run
+
+
+def track_bounded(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    detections,
+    *,
+    need: int,
+    limit: float,
+    likelihood=None,
+    pcutoff: float = 0.9,
+    marker_names: Sequence[str] | None = None,
+    normalization: Normalization | None = None,
+    progress: bool | None = False,
+    **options,
+) -> PoseResult:
+    """:func:`acm_rs.track` of a recording too long for its in-memory EM: :func:`track_long`
+    into a temporary HDF5 file, read back as a :class:`PoseResult` (no ``state_cov``; the
+    state means from the poses). ``need``/``limit``: the bytes that made the choice, said in
+    one warning. ``options``: :func:`track_long`'s."""
+    import tempfile
+
+    T = np.shape(detections)[1]
+    warnings.warn(
+        f"{T} frames would need ~{need / 2**30:.1f} GiB in memory (limit "
+        f"{limit / 2**30:.1f} GiB): tracking them in bounded memory (acm_rs.track_long: EM "
+        "on windows, the exact streaming smoother); memory_limit=float('inf') forces the "
+        "in-memory EM",
+        stacklevel=3,
+    )
+    norm = normalization or default_normalization(rig, skeleton)
+    # EM's windows within the budget (each frame of them costs need / T), at least 1,000
+    # frames each; a recording that fits whole is learned whole, and its V_z is then not
+    # shrunk (shrinkage guards the transfer of Θ from windows to other frames)
+    subset = int(min(DEFAULT_SUBSET, max(1000, limit * T / need)))
+    options.setdefault("subset", subset)
+    options.setdefault("n_windows", max(1, min(DEFAULT_WINDOWS, subset // 1000)))
+    if T <= options["subset"]:
+        options.setdefault("vz_shrinkage", 0.0)
+    with tempfile.TemporaryDirectory(prefix="acm-rs-track-") as tmp:
+        path = Path(tmp) / "poses.h5"
+        run = track_long(
+            rig, skeleton, detections, path, likelihood=likelihood, pcutoff=pcutoff,
+            marker_names=marker_names, normalization=norm, progress=progress, **options,
+        )  # fmt: skip
+        arrays = read_chunked(path)
+    det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
+    sm = StateMap(skeleton, norm, options.get("joint_limits", True))
+    info = dict(arrays["info"]) | {
+        "bounded_memory": True, "memory_needed": need, "memory_limit": limit,
+        "status": arrays["status"], "markers_std": arrays["markers_std"],
+        "params": arrays["params"], "converged": bool(run.get("em_converged", True)),
+        "interrupted": False, "seconds": run["seconds"],
+    }  # fmt: skip
+    info.setdefault("em_converged", info["converged"])
+    history = list(info.get("em_history", []))
+    return PoseResult(
+        skeleton=skeleton, rig=rig, state_map=sm, joints=arrays["joints"],
+        joints_std=arrays["joints_std"], markers=arrays["markers"], t=arrays["t"],
+        r=arrays["r"], state_mean=sm.from_pose(arrays["t"], arrays["r"]), state_cov=None,
+        detections=det, em_history=history, info=info,
+    )  # fmt: skip
 
 
 def shrink_vz(params: dict, s: float) -> dict:

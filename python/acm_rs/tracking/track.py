@@ -8,6 +8,7 @@ of sec. 4.7 and packages the posterior as a :class:`PoseResult`.
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -42,6 +43,31 @@ DEFAULT_NOISE = 2e-4
 MOTION_ORDER = {"random_walk": 1, "velocity": 2, "auto": 2}
 #: Default motion model (chosen by measurement, docs/tracking.md).
 DEFAULT_MOTION = "auto"
+
+#: Bytes per frame the in-memory EM keeps, in units of ``(order · n_state)²`` doubles
+#: (filtered, predicted and smoothed moments and the cross-covariances of Alg. 9; measured
+#: peak RSS of the rat, 50 entries: 70 KB/frame for the random walk, 206 KB/frame for the
+#: velocity state).
+MOMENT_COPIES = 3.5
+#: Upper bound of the default memory budget of the in-memory EM (:func:`acm_rs.track`).
+MEMORY_LIMIT_CAP = 4 * 2**30
+
+
+def in_memory_bytes(n_frames: int, n_state: int, motion: str) -> int:
+    """Bytes :func:`track_in_memory`'s EM needs for ``n_frames`` frames of a state of
+    ``n_state`` entries (``motion`` "auto" and "velocity" double the state)."""
+    k = MOTION_ORDER[motion] * n_state
+    return int(n_frames * MOMENT_COPIES * k * k * 8)
+
+
+def default_memory_limit() -> int:
+    """:func:`acm_rs.track`'s budget for the in-memory EM: half of the memory available now, at most
+    ``MEMORY_LIMIT_CAP`` (4 GiB; where the system does not say, the cap)."""
+    try:
+        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return MEMORY_LIMIT_CAP
+    return int(min(MEMORY_LIMIT_CAP, avail // 2))
 
 
 def default_normalization(rig: CameraRig, skeleton: Skeleton) -> Normalization:
@@ -369,7 +395,7 @@ def _empty_stretches(det: np.ndarray, min_len: int = 10) -> list[tuple[int, int]
             f"{where}): their poses are bridged by the motion model, not measured, and their "
             "95 % intervals may be too narrow (79 % coverage inside a synthetic 40-frame gap, "
             "docs/tracking.md); result.info['empty_stretches'] lists them",
-            stacklevel=3,
+            stacklevel=4,
         )
     return out
 
@@ -392,7 +418,7 @@ def _warn_implausible_fit(result: PoseResult, fit_px: float, factor: float = 3.0
             f" x that of per-frame fits of the same detections ({fit_px:.1f} px): the "
             "temporal model does not fit these data (check result.em_history and the frames "
             "without detections; method='deterministic' gives the per-frame fits)",
-            stacklevel=3,
+            stacklevel=4,
         )
 
 
@@ -417,7 +443,7 @@ def _warn_em(result: PoseResult, max_iter: int, ll_tol: float) -> None:
             f"the {name} model; log-likelihood {ll[-1]:.6g}, best {ll[best]:.6g} at iteration "
             f"{best + 1}): the poses are those of its best parameters, not of a converged fit; "
             "check result.em_history or raise max_iter",
-            stacklevel=3,
+            stacklevel=4,
         )
     drop = ll[best] - ll[-1]
     if np.isfinite(drop) and drop > 10.0 * ll_tol * max(hist[-1]["used"], 1):
@@ -430,11 +456,11 @@ def _warn_em(result: PoseResult, max_iter: int, ll_tol: float) -> None:
         warnings.warn(
             f"EM's marginal log-likelihood peaked at iteration {best + 1} ({ll[best]:.6g}) "
             f"and fell to {ll[-1]:.6g} ({name} model): {which}; check result.em_history",
-            stacklevel=3,
+            stacklevel=4,
         )
 
 
-def track(
+def track_in_memory(
     rig: CameraRig,
     skeleton: Skeleton,
     detections: np.ndarray,
@@ -457,7 +483,8 @@ def track(
     motion: str = DEFAULT_MOTION,
     relinearize: int = 10,
 ) -> PoseResult:
-    """Reconstruct the poses of a recording (ACM supp. sec. 4).
+    """Reconstruct the poses of a recording in memory (ACM supp. sec. 4); what
+    :func:`acm_rs.track` runs when the recording's moments fit its memory budget.
 
     ``method="ukf"`` (default) learns the model parameters by EM (Alg. 11: unscented RTS
     smoother as E-step, Alg. 12 as M-step, Alg. 13 convergence) and returns the smoothed
@@ -530,7 +557,6 @@ def track(
     marker_names : sequence of str, optional
         Names of the detection columns, mapped to skeleton markers (DeepLabCut body parts,
         ``marker_<name>_start`` and ``spot_<name>`` spellings accepted).
-
     Returns
     -------
     PoseResult
@@ -669,7 +695,7 @@ def track(
                 warnings.warn(
                     f"motion='velocity' fits these detections worse than the random walk "
                     f"({worse}); consider motion='random_walk'",
-                    stacklevel=2,
+                    stacklevel=3,
                 )
     poses, joints, markers, joints_std, markers_std = native.posterior()
     # back to the caller's length unit
