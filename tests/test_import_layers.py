@@ -66,6 +66,7 @@ LAYERS: dict[str, int] = {
     "acm_rs.models": 1,
     "acm_rs.dlc": 1,
     "acm_rs.sleap": 1,
+    "acm_rs.sleap_session": 1,
     "acm_rs.labels": 1,
     "acm_rs.acm_formats": 1,
     "acm_rs.acm_model": 1,

@@ -204,6 +204,13 @@ class Camera:
         missing = {"matrix", "distortions", "rotation", "translation"} - set(d)
         if missing:
             raise ValueError(f"camera table lacks keys {sorted(missing)}")
+        if d.get("fisheye"):
+            # aniposelib's FisheyeCamera: 4 coefficients of OpenCV's fisheye model, not the
+            # pinhole k1, k2, p1, p2 this reader would take them for
+            raise ValueError(
+                "fisheye = true: an anipose fisheye camera (cv2.fisheye model), which acm-rs "
+                "does not support; calibrate without fisheye = true"
+            )
         size = tuple(d["size"]) if "size" in d else None
         if size is not None:
             _check_size(size, d["matrix"])
@@ -230,9 +237,14 @@ class CameraRig:
         Length unit of the world frame and translations ("mm", "cm", "m"; "" = not
         declared). Recorded in ``calibration.toml`` (``[metadata] units``) and checked
         against the skeleton's units by learning and tracking.
+    metadata : dict, optional
+        The other keys of the file's ``[metadata]`` table (anipose writes ``adjusted`` and
+        ``error``), kept so that :meth:`save` writes them back; None: the file had no table.
     """
 
-    def __init__(self, cameras: Iterable[Camera], units: str = "") -> None:
+    def __init__(
+        self, cameras: Iterable[Camera], units: str = "", metadata: dict | None = None
+    ) -> None:
         cams = list(cameras)
         if not cams:
             raise ValueError("a camera rig needs at least one camera")
@@ -244,6 +256,7 @@ class CameraRig:
             raise ValueError(f"camera names must be unique, got {names}")
         self.cameras: list[Camera] = cams
         self.units = str(units or "")
+        self.metadata: dict | None = None if metadata is None else dict(metadata)
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -290,6 +303,7 @@ class CameraRig:
         p[:, 3:6] *= f  # [r (3), t (3), fx, fy, cx, cy, k1, k2, p1, p2, k3]
         out = self.set_params(p)
         out.units = units if units is not None else (self.units if f == 1.0 else "")
+        out.metadata = None if self.metadata is None else dict(self.metadata)  # same calibration
         return out
 
     def project(self, points: np.ndarray) -> np.ndarray:
@@ -312,7 +326,9 @@ class CameraRig:
 
         Tables ``[cam_0]``, ``[cam_1]``, ... in rig order with ``name``, ``size``, ``matrix``,
         ``distortions`` (OpenCV order), ``rotation`` (Rodrigues, world to camera) and
-        ``translation``; optional ``[metadata]``.
+        ``translation``; ``[metadata]``: the rig's :attr:`metadata` (as read), ``units``, then
+        ``metadata`` (which wins on shared keys). An empty ``[metadata]`` table read is written
+        back empty.
         """
         doc: dict = {}
         for i, cam in enumerate(self.cameras):
@@ -320,10 +336,11 @@ class CameraRig:
             if not table["name"]:
                 table["name"] = f"cam_{i}"
             doc[f"cam_{i}"] = table
-        meta = dict(metadata or {})
+        meta = dict(self.metadata or {})
         if self.units:
-            meta.setdefault("units", self.units)
-        if meta:
+            meta["units"] = self.units
+        meta.update(metadata or {})
+        if meta or self.metadata is not None:
             doc["metadata"] = meta
         with atomic_write(path) as fh:
             fh.write(_toml.dumps(doc))
@@ -373,9 +390,12 @@ class CameraRig:
             if missing:
                 raise ValueError(f"{p}: no camera named {missing}; cameras: {list(by_name)}")
             cams = [by_name[n] for n in names]
-        meta = doc.get("metadata", {})
-        units = meta.get("units", "") if isinstance(meta, dict) else ""
-        return cls(cams, units=str(units))
+        meta = doc.get("metadata")
+        if meta is not None and not isinstance(meta, dict):
+            raise ValueError(f"{p}: metadata must be a table [metadata]")
+        units = (meta or {}).get("units", "")
+        kept = None if meta is None else {k: v for k, v in meta.items() if k != "units"}
+        return cls(cams, units=str(units), metadata=kept)
 
     def __repr__(self) -> str:
         return f"CameraRig({len(self)} cameras: {self.names})"

@@ -76,7 +76,7 @@ def _cmd_learn(args: argparse.Namespace) -> int:
     prefix = Path(args.output).with_suffix("")
     for f in (prefix.with_suffix(".toml"), prefix.with_name(prefix.name + "_fit.npz")):
         check_output_path(f, args.overwrite)  # before the work (error and overwrite policy)
-    rig, table = rig_for_files(args.calibration, args.labels, args.camera_names)
+    rig, table = rig_for_files(args.calibration, args.labels, args.camera_names, args.cam_regex)
     if table:
         print("acm-rs learn: cameras matched by the names in the files:\n  "
               + table.replace("\n", "\n  "))  # fmt: skip
@@ -147,6 +147,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="cameras to use, in label-file order (default: from the file names when each "
         "names one camera; else the calibration's order)",
     )  # fmt: skip
+    lp.add_argument(
+        "--cam-regex",
+        help="regex finding the camera name in the file names (first group, else the whole "
+        r"match; default '(?i)cam(?:era)?[-_]?[a-z0-9]+')",
+    )
     lp.add_argument("--model", default="rat", help="bundled model name or skeleton TOML")
     lp.add_argument(
         "--labels", nargs="+",

@@ -20,9 +20,9 @@ import numpy as np
 
 from .sleap import is_sleap_analysis, read_sleap_analysis, read_slp
 
-__all__ = ["LabelSet", "concat_labels", "read_dlc_table", "read_labels"]
+__all__ = ["LabelSet", "concat_labels", "read_dlc_table", "read_labels", "shift_labels"]
 
-_COORDS = {"x", "y", "likelihood"}
+_COORDS = {"x", "y", "z", "likelihood"}
 
 
 @dataclass
@@ -56,38 +56,74 @@ def _frame_number(label: object, fallback: int) -> int:
 
 
 def _read_csv(path: Path):
+    """A DeepLabCut CSV as the DataFrame DeepLabCut wrote (MultiIndex columns, 1 or 3 index
+    columns). The 3 (4) header rows are parsed here and the data rows by pandas without a
+    header: pandas' multi-row-header parsing takes an entirely empty first data row (a frame
+    without any detection) for a row of index names and drops it, shifting every frame."""
     import pandas as pd
 
-    try:
-        raw = pd.read_csv(path, header=None, nrows=5, dtype=str, keep_default_na=False)
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
-    except pd.errors.ParserError as exc:
-        raise ValueError(f"{path}: not a DeepLabCut CSV ({exc})") from None
-    except pd.errors.EmptyDataError:
-        raise ValueError(f"{path}: empty file, not a DeepLabCut CSV") from None
-    first = [str(v).strip() for v in raw.iloc[:, 0]]
+    text, lines = _csv_lines(path)
+    rows = _parse(path, lines[:6])  # the header rows and the first data rows
+    if not rows:
+        raise ValueError(f"{path}: empty file, not a DeepLabCut CSV")
+    first = [r[0].strip() if r else "" for r in rows[:4]]
     n_header = 4 if len(first) > 1 and first[1] == "individuals" else 3
-    if len(raw) < n_header or first[0] != "scorer":
+    if len(rows) < n_header or first[0] != "scorer":
         raise ValueError(f"{path}: not a DeepLabCut CSV (expected scorer/bodyparts/coords rows)")
-    coords_row = [str(v).strip() for v in raw.iloc[n_header - 1]]
+    coords_row = [v.strip() for v in rows[n_header - 1]]
     n_index = next((i for i, v in enumerate(coords_row) if v in _COORDS), None)
     if n_index is None or n_index == 0:
         raise ValueError(f"{path}: not a DeepLabCut CSV (no x/y/likelihood header row)")
-    _check_csv_rows(path, len(coords_row))
-    return pd.read_csv(path, header=list(range(n_header)), index_col=list(range(n_index)))
+    _check_csv_rows(path, text, lines, len(coords_row))
+    columns = pd.MultiIndex.from_arrays(
+        [rows[h][n_index:] for h in range(n_header)], names=[rows[h][0] for h in range(n_header)]
+    )
+    skip = n_header
+    if len(rows) > n_header and _is_index_names(rows[n_header], n_index):
+        skip += 1  # pandas writes a row of index names when the index has names
+    if not any(line.strip() for line in lines[skip:]):
+        return pd.DataFrame(columns=columns)
+    data = pd.read_csv(path, header=None, skiprows=skip)
+    index = data.iloc[:, :n_index]
+    df = data.iloc[:, n_index:]
+    df.columns = columns
+    df.index = pd.Index(index.iloc[:, 0]) if n_index == 1 else pd.MultiIndex.from_frame(index)
+    return df
 
 
-def _check_csv_rows(path: Path, width: int) -> None:
+def _is_index_names(row: list[str], n_index: int) -> bool:
+    """A row of index names (pandas ``to_csv`` of a named index) rather than a frame without
+    detections: every data field empty and index fields without a digit (a frame number or
+    image name always has one)."""
+    return (
+        not any(v.strip() for v in row[n_index:])
+        and any(v.strip() for v in row[:n_index])
+        and not any(c.isdigit() for v in row[:n_index] for c in v)
+    )
+
+
+def _csv_lines(path: Path) -> tuple[bytes, list[str]]:
+    text = path.read_bytes()
+    try:
+        return text, text.decode("utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
+
+
+def _parse(path: Path, lines: list[str]) -> list[list[str]]:
+    import csv
+
+    try:
+        return list(csv.reader(lines))
+    except csv.Error as exc:
+        raise ValueError(f"{path}: not a DeepLabCut CSV ({exc})") from None
+
+
+def _check_csv_rows(path: Path, text: bytes, lines: list[str], width: int) -> None:
     """Refuse a DeepLabCut CSV with a row of another width than the header (pandas would pad
     it with NaN): a cut last row or a damaged line, named by its line number."""
     import csv
 
-    text = path.read_bytes()
-    try:
-        lines = text.decode("utf-8").splitlines()
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not a text file (byte {exc.start} is not UTF-8)") from None
     for n, row in enumerate(csv.reader(lines), start=1):
         if row and len(row) != width:
             cut = n == len(lines) and not text.endswith((b"\n", b"\r"))
@@ -99,7 +135,7 @@ def _check_csv_rows(path: Path, width: int) -> None:
 
 def read_dlc_table(path: str | Path, individual: str | None = None):
     """Read one 2D label file: DeepLabCut or Lightning Pose ``.csv``, DeepLabCut ``.h5``
-    (PyTables), SLEAP analysis ``.h5`` or SLEAP ``.slp`` (needs sleap-io).
+    (PyTables), SLEAP analysis ``.h5`` or SLEAP ``.slp`` (both read with h5py).
 
     Parameters
     ----------
@@ -167,6 +203,12 @@ def read_dlc_table(path: str | Path, individual: str | None = None):
         cols = df.columns
     if cols.nlevels != 3:
         raise ValueError(f"{p}: unexpected column levels {cols.nlevels} (expected 3 or 4)")
+    if "z" in set(cols.get_level_values(-1)):
+        # DeepLabCut 3D's triangulate writes <video>..._3D.h5/.csv with coords x, y, z
+        raise ValueError(
+            f"{p}: a 3D file (coords x, y, z, as DeepLabCut 3D's triangulate writes), not 2D "
+            "labels; give each camera's 2D predictions (<video>DLC_<network>.h5 or .csv)"
+        )
     # coordinate columns only: Lightning Pose adds a "set" column, EKS "x_ens_var" etc.
     xs = [c for c in cols if c[2] == "x"]
     if not xs:
@@ -228,6 +270,30 @@ def read_labels(paths: Sequence[str | Path | None], individual: str | None = Non
             lk = lk if lk is not None else np.where(np.isfinite(p[..., 0]), 1.0, np.nan)
             lik[c, rows[:, None], cols[None, :]] = lk
     return LabelSet(pts, lik, frames, bodyparts)
+
+
+def shift_labels(labels: LabelSet, offsets: np.ndarray | None) -> LabelSet:
+    """Labels of cropped videos in the calibrated (full) image: ``points[c] + offsets[c]``.
+
+    Anipose's convention (``[cameras.<name>] offset = [x, y, ...]``, triangulate.py): a
+    video cropped at ``(x, y)`` has its 2D points shifted by ``(x, y)`` before
+    triangulation; the calibration stays that of the full image.
+
+    Parameters
+    ----------
+    labels : LabelSet
+    offsets : array_like, shape (n_cams, 2), or None
+        Pixels; None returns ``labels`` unchanged.
+    """
+    if offsets is None:
+        return labels
+    off = np.asarray(offsets, dtype=float)
+    if off.shape != (labels.points.shape[0], 2) or not np.isfinite(off).all():
+        raise ValueError(
+            f"crop offsets must be finite, shape ({labels.points.shape[0]}, 2), got {off.shape}"
+        )
+    pts = labels.points + off[:, None, None, :]
+    return LabelSet(pts, labels.likelihood, labels.frames, labels.bodyparts)
 
 
 def concat_labels(sets: Sequence[LabelSet]) -> LabelSet:

@@ -208,7 +208,7 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
     Without manual labels nothing is saved (and the log says so: tracking then uses the
     generic model). Skipped while its record (:mod:`acm_rs._provenance`) matches.
     """
-    from .dlc import concat_labels, read_labels
+    from .dlc import concat_labels, read_labels, shift_labels
     from .learning import learn_skeleton
     from .project import camera_table, find_manual_labels, read_dlc_config
 
@@ -233,7 +233,8 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
         {**label_files, "calibration": _calibration_path(config), "model": _model_file(config)},
         {"model": config.project["model"], "body_weight": config.project.get("body_weight"),
          "pcutoff": config.tracking["pcutoff"], "individual": config.project.get("individual"),
-         "cameras": list(config.cameras["names"])},
+         "cameras": list(config.cameras["names"]),
+         **({"crop_offsets": config.crop_offsets} if config.crop_offsets else {})},
     )  # fmt: skip
     if _skip(out, overwrite, "learn", fresh):
         return out
@@ -252,7 +253,8 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
         read_labels([g.get(c) for c in names], individual=config.project.get("individual"))
         for g in groups.values()
     ]
-    labels = concat_labels(sets)
+    # labelled frames come from the (cropped) videos: anipose crop offsets apply too
+    labels = shift_labels(concat_labels(sets), config.offsets_for(names))
     res = learn_skeleton(
         rig, generic, labels.points, body_weight=config.project.get("body_weight"),
         marker_names=labels.bodyparts, progress=None, likelihood=labels.likelihood,
@@ -278,7 +280,7 @@ def step_track(
     config: ProjectConfig, session: Session, overwrite: bool = False, out: Path | None = None
 ) -> Path:
     """Track one session's DeepLabCut predictions with the learned skeleton."""
-    from .dlc import read_labels
+    from .dlc import read_labels, shift_labels
     from .skeleton import Skeleton
     from .tracking import track
 
@@ -300,7 +302,8 @@ def step_track(
         {"tracking": {k: v for k, v in config.tracking.items() if k != "fps"},  # fps: export
          "em": config.em, "cameras": list(session.cameras),
          "individual": config.project.get("individual"),
-         "model": None if learned else config.project["model"]},
+         "model": None if learned else config.project["model"],
+         **({"crop_offsets": config.crop_offsets} if config.crop_offsets else {})},
     )  # fmt: skip
     if _skip(path, overwrite, f"track {session.name}", fresh):
         return path
@@ -319,6 +322,7 @@ def step_track(
     ls = read_labels(
         [session.labels[c] for c in session.cameras], individual=config.project.get("individual")
     )
+    ls = shift_labels(ls, config.offsets_for(session.cameras))  # anipose crop offsets
     dt = int(config.tracking["dt"])
     lik = ls.likelihood[:, ::dt] if ls.likelihood is not None else None
     res = track(

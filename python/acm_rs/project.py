@@ -144,11 +144,13 @@ SCHEMA: dict[str, dict[str, _Opt]] = {
     },
     "cameras": {
         "regex": _Opt(
-            r"(?i)cam[-_]?[a-z0-9]+",
+            # "camera" is taken whole: DeepLabCut 3D names cameras camera-1, camera-2, and a
+            # match of "camera" alone would give both files the same name
+            r"(?i)cam(?:era)?[-_]?[a-z0-9]+",
             (str,),
             "regex finding the camera name in file names (first group, else the whole match); "
             "names are matched to the calibration's exactly, else ignoring case, separators "
-            "and a 'cam' prefix (cam0 = Cam_0 = 0)",
+            "and a 'cam'/'camera' prefix (cam0 = Cam_0 = 0, camera-1 = 1)",
             _regex_ok,
             "a valid regular expression",
         ),
@@ -265,6 +267,13 @@ def init_project(
     """
     root = Path(path)
     target = root / CONFIG_NAME
+    if target.is_file() and _is_anipose_file(target):
+        # --overwrite would destroy the anipose project's config, which acm-rs reads as is
+        raise FileExistsError(
+            f"{target} is an anipose project's config, which acm-rs reads as it is (no init "
+            f"needed); put acm-rs settings in its [{ANIPOSE_TABLE}.<section>] tables, e.g. "
+            f"[{ANIPOSE_TABLE}.project] model = 'mouse'"
+        )
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} exists; pass overwrite=True (--overwrite) to replace it")
     text = _config_text(sections)
@@ -297,11 +306,34 @@ class ProjectConfig:
     tracking: dict
     em: dict
     path: Path
+    #: Anipose crop offsets: camera name -> (x, y) px of the cropped video's top-left corner
+    #: in the calibrated (full) image, from ``[cameras.<name>] offset``.
+    crop_offsets: dict = field(default_factory=dict)
+    #: For an anipose project's config: what else was read from it (``constraints``,
+    #: ``constraints_weak``, ``nesting``); None for an acm-rs config.
+    anipose: dict | None = None
 
     @property
     def camera_regex(self) -> re.Pattern:
         """Compiled ``cameras.regex``."""
         return re.compile(self.cameras["regex"])
+
+    def offsets_for(self, cameras: list[str]) -> np.ndarray | None:
+        """``(n_cams, 2)`` crop offsets (x, y) px of ``cameras`` (0 for a camera without one,
+        as anipose does); None when the project has none. Warns about offsets of cameras not
+        in ``cameras`` (a camera-name mismatch would otherwise leave points unshifted)."""
+        if not self.crop_offsets:
+            return None
+        unused = sorted(set(self.crop_offsets) - set(cameras))
+        if unused:
+            import warnings
+
+            warnings.warn(
+                f"{self.path}: crop offsets for camera(s) {unused}, which no file of the "
+                f"session names (cameras: {cameras}); check cameras.regex / cam_regex",
+                stacklevel=2,
+            )
+        return np.array([self.crop_offsets.get(c, (0.0, 0.0)) for c in cameras], dtype=float)
 
     def board(self) -> dict:
         """The board spec with anipose's keys (``board_type``, ``board_size``, ...)."""
@@ -381,8 +413,132 @@ def load_config(path: str | Path) -> ProjectConfig:
         doc = tomllib.loads(p.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{p}: invalid TOML: {exc}") from None
+    if is_anipose_config(doc):
+        return _anipose_config(doc, p)
     sections = _validate(doc, str(p))
     return ProjectConfig(root=p.parent.resolve(), path=p, **sections)
+
+
+# -- anipose projects -----------------------------------------------------------------------------
+#: Keys only an anipose ``config.toml`` has (anipose.py's DEFAULT_CONFIG and its docs).
+_ANIPOSE_KEYS = {
+    "model_folder", "nesting", "video_extension", "model_type", "converted_video_speed",
+    "triangulation", "pipeline", "filter", "filter3d", "labeling", "angles",
+    "manual_verification",
+}  # fmt: skip
+_ANIPOSE_BOARD_KEYS = (
+    "board_type", "board_size", "board_marker_bits", "board_marker_dict_number",
+    "board_marker_length", "board_square_side_length",
+)  # fmt: skip
+#: acm-rs's settings inside an anipose config (anipose ignores tables it does not know).
+ANIPOSE_TABLE = "acm_rs"
+
+
+def is_anipose_config(doc: Mapping[str, Any]) -> bool:
+    """Whether a parsed ``config.toml`` is an anipose project's (``project = "name"`` is a
+    string there, or a key only anipose has)."""
+    return isinstance(doc.get("project"), str) or bool(_ANIPOSE_KEYS & set(doc))
+
+
+def _anipose_config(doc: Mapping[str, Any], p: Path) -> ProjectConfig:
+    """An anipose project's ``config.toml`` as a :class:`ProjectConfig`.
+
+    Read (anipose's keys and defaults): ``[pipeline] videos_raw`` (``videos-raw``), ``pose_2d``
+    (``pose-2d``) and ``calibration_results`` (``calibration``) as the paths;
+    ``[triangulation] cam_regex`` as ``cameras.regex``; the board of ``[calibration]``;
+    ``[cameras.<name>] offset = [x, y]`` or ``[x, y, w, h]`` as crop offsets; ``constraints``
+    and ``constraints_weak`` kept in ``config.anipose``. acm-rs's own settings (model,
+    pcutoff, ...) go in an ``[acm_rs.<section>]`` table of the same file.
+    """
+    src = str(p)
+    nesting = doc.get("nesting", 1)
+    if nesting not in (0, 1):
+        raise ValueError(
+            f"{src}: anipose nesting = {nesting!r}: acm-rs finds sessions in the project folder "
+            "and its subfolders (nesting 0 or 1); move the session folders up to one level"
+        )
+    pipe = _table(doc, "pipeline", src)
+    tri = _table(doc, "triangulation", src)
+    cal = _table(doc, "calibration", src)
+    if cal.get("board_type") == "aruco":
+        raise ValueError(
+            f"{src}: anipose board_type 'aruco': acm-rs calibrates with charuco or checkerboard "
+            "boards only; calibrate with `anipose calibrate` (acm-rs reads its calibration.toml)"
+            " and set board_type under [acm_rs.calibration]"
+        )
+    if cal.get("fisheye"):
+        raise ValueError(
+            f"{src}: anipose calibration.fisheye = true: acm-rs supports pinhole cameras with "
+            "OpenCV's k1, k2, p1, p2, k3 distortion only"
+        )
+    calib_dir = pipe.get("calibration_results", "calibration")
+    sections: dict[str, dict] = {
+        "paths": {
+            "videos": pipe.get("videos_raw", "videos-raw"),
+            "labels": pipe.get("pose_2d", "pose-2d"),
+            "calibration": f"{calib_dir}/calibration.toml",
+        },
+        "cameras": {"regex": tri["cam_regex"]} if "cam_regex" in tri else {},
+        "calibration": {k: cal[k] for k in _ANIPOSE_BOARD_KEYS if k in cal},
+    }
+    own = _table(doc, ANIPOSE_TABLE, src)
+    for section, table in own.items():
+        if not isinstance(table, dict):
+            raise ValueError(f"{src}: {ANIPOSE_TABLE}.{section} must be a table")
+        sections.setdefault(section, {}).update(table)
+    values = _validate(sections, f"{src} (anipose config)")
+    offsets = _anipose_offsets(_table(doc, "cameras", src), src)
+    extra = {
+        "constraints": _pairs(tri.get("constraints", []), "constraints", src),
+        "constraints_weak": _pairs(tri.get("constraints_weak", []), "constraints_weak", src),
+        "nesting": nesting,
+        "project": doc.get("project"),
+    }
+    return ProjectConfig(
+        root=p.parent.resolve(), path=p, crop_offsets=offsets, anipose=extra, **values
+    )
+
+
+def _is_anipose_file(path: Path) -> bool:
+    try:
+        return is_anipose_config(tomllib.loads(path.read_text(encoding="utf-8")))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return False
+
+
+def _table(doc: Mapping[str, Any], key: str, src: str) -> dict:
+    t = doc.get(key, {})
+    if not isinstance(t, dict):
+        raise ValueError(f"{src}: {key} must be a table [{key}]")
+    return t
+
+
+def _anipose_offsets(cameras: Mapping[str, Any], src: str) -> dict[str, tuple[float, float]]:
+    """``[cameras.<name>] offset``: anipose adds ``offset[0], offset[1]`` to the x, y of every
+    2D point of that camera (triangulate.py, load_pose2d_fnames); width and height (entries
+    2, 3, when given) describe the crop and are not used."""
+    out = {}
+    for name, t in cameras.items():
+        if not isinstance(t, dict) or "offset" not in t:
+            continue
+        off = t["offset"]
+        ok = isinstance(off, list) and len(off) in (2, 4)
+        ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in off)
+        if not ok or not all(np.isfinite(off)):
+            raise ValueError(
+                f"{src}: cameras.{name}.offset must be [x, y] or [x, y, width, height] in "
+                f"pixels, got {off!r}"
+            )
+        out[str(name)] = (float(off[0]), float(off[1]))
+    return out
+
+
+def _pairs(v: Any, key: str, src: str) -> list[tuple[str, str]]:
+    if not isinstance(v, list) or not all(
+        isinstance(x, list) and len(x) == 2 and all(isinstance(s, str) for s in x) for x in v
+    ):
+        raise ValueError(f"{src}: triangulation.{key} must be a list of [bodypart, bodypart]")
+    return [(a, b) for a, b in v]
 
 
 # -- sessions -------------------------------------------------------------------------------------
@@ -425,6 +581,15 @@ def _camera_of(file: Path, regex: re.Pattern) -> str | None:
     return m.group(1) if m.groups() and m.group(1) is not None else m.group(0)
 
 
+def _video_stem(file: Path) -> str:
+    """The video a file belongs to: the stem without DeepLabCut's ``DLC_<network>...`` tail and
+    SLEAP's ``.analysis``/``.predictions`` tags."""
+    stem = file.stem.split("DLC_", 1)[0]
+    for tag in (".analysis", ".predictions"):
+        stem = stem.removesuffix(tag)
+    return stem
+
+
 def _no_camera(f: Path, regex: re.Pattern) -> ValueError:
     return ValueError(
         f"{f}: no camera name matches cameras.regex {regex.pattern!r}; rename the file "
@@ -439,7 +604,7 @@ def _label_variant(f: Path) -> tuple[str, bool, int]:
     """(identity, filtered, format rank) of a 2D label file: the DeepLabCut ``.h5`` and ``.csv``
     of one analysis, and its ``_filtered`` versions, share the identity; so do a SLEAP ``.slp``
     and its analysis ``.h5``. Lower rank = preferred format (``.h5`` needs no CSV parsing, an
-    analysis ``.h5`` no sleap-io)."""
+    analysis ``.h5`` no instance tables)."""
     stem = f.stem
     for tag in _SLEAP_TAGS:
         stem = stem.removesuffix(tag)
@@ -512,12 +677,18 @@ def _files_by_camera(
         out.setdefault(cam, []).append(f)
     chosen = {}
     for cam, files in out.items():
+        stems = {_video_stem(f) for f in files}
+        if len(stems) > 1:
+            # different recordings or different cameras that the regex names alike (e.g.
+            # camera-1, camera-2 under a regex taking "camera"): never "different analyses"
+            count = "two" if len(files) == 2 else str(len(files))
+            raise ValueError(
+                f"{folder}: {count} files for camera {cam!r} by cameras.regex "
+                f"{regex.pattern!r} ({', '.join(f.name for f in files)}); if they are different "
+                "cameras, change cameras.regex (a group around the distinguishing part), else "
+                "keep one"
+            )
         if not labels:
-            if len(files) > 1:
-                raise ValueError(
-                    f"{folder}: two files for camera {cam!r}: {files[0].name} and "
-                    f"{files[1].name}; keep one"
-                )
             chosen[cam] = files[0]
             continue
         chosen[cam], rest = pick_label_file(
@@ -690,34 +861,66 @@ def camera_table(
                      for r in [head] + rows)  # fmt: skip
 
 
-def rig_for_files(calibration: str | Path, files: list[str | Path], names: list[str] | None = None):
+def rig_for_files(
+    calibration: str | Path,
+    files: list[str | Path],
+    names: list[str] | None = None,
+    regex: str | None = None,
+):
     """The calibrated rig in the order of per-camera files given on the command line.
 
     With ``names`` (``--camera-names``) those cameras in that order. Otherwise, when every
-    file name holds a camera name (default ``cameras.regex``) matching one calibrated camera
-    (:func:`match_cameras`), the rig is put in the files' order; else the calibration's order
-    (the files must then be given in it).
+    file name holds a camera name (``regex``, ``--cam-regex``; default ``cameras.regex``)
+    matching one calibrated camera (:func:`match_cameras`), the rig is put in the files' order,
+    whatever order they are given in. When no file name holds a camera name, the files are
+    taken in the calibration's order, with a warning that says so.
 
     Returns
     -------
     rig : CameraRig
     table : str or None
         :func:`camera_table` of the match made from the file names (None if not).
+
+    Raises
+    ------
+    ValueError
+        Two files whose names give the same camera (listing the files and the names), or
+        file names that name cameras the calibration does not match (never a silent fall
+        back to the calibration's order).
     """
+    import warnings
+
     from .camera import CameraRig
 
     if names:
         return CameraRig.load(calibration, names=names), None
     rig = CameraRig.load(calibration)
-    regex = re.compile(SCHEMA["cameras"]["regex"].default)
-    paths = [Path(f) for f in files]
-    found = [_camera_of(p, regex) for p in paths]
-    if len(paths) != len(rig) or None in found or len(set(found)) != len(found):
-        return rig, None
+    pattern = regex or SCHEMA["cameras"]["regex"].default
     try:
-        mapping = match_cameras(found, [c.name for c in rig])
-    except ValueError:
+        compiled = re.compile(pattern)
+    except re.error as exc:
+        raise ValueError(
+            f"--cam-regex {pattern!r} is not a valid regular expression: {exc}"
+        ) from None
+    paths = [Path(f) for f in files]
+    found = [_camera_of(p, compiled) for p in paths]
+    given = [(p.name, c) for p, c in zip(paths, found, strict=True) if c is not None]
+    if len(paths) != len(rig) or not given:
+        if len(paths) == len(rig):
+            warnings.warn(
+                f"no camera name in the file names (regex {pattern!r}): the files are taken "
+                f"in the calibration's order {rig.names}; give --camera-names to be sure",
+                stacklevel=2,
+            )
         return rig, None
+    if None in found or len(set(found)) != len(found):
+        listing = ", ".join(f"{n} -> {c!r}" for n, c in zip(
+            [p.name for p in paths], found, strict=True))  # fmt: skip
+        raise ValueError(
+            f"the file names do not give one camera each with regex {pattern!r} ({listing}); "
+            "give --cam-regex with a group for the distinguishing part, or --camera-names"
+        )
+    mapping = match_cameras(found, [c.name for c in rig], regex=pattern)
     ordered = CameraRig.load(calibration, names=[mapping[c][0] for c in found])
     table = camera_table(mapping, {"file": dict(zip(found, paths, strict=True))})
     return ordered, table
@@ -875,6 +1078,8 @@ def _dlc_summary(doc: Mapping[str, Any], model: str) -> list[str]:
 
 def _cmd_init(args) -> int:
     root = Path(args.path)
+    if (root / CONFIG_NAME).is_file() and _is_anipose_file(root / CONFIG_NAME):
+        init_project(root)  # raises: the anipose config is read as it is
     overrides: dict[str, dict] = {"project": {}, "paths": {}, "tracking": {}}
     if args.model:
         overrides["project"]["model"] = args.model
@@ -900,15 +1105,51 @@ def _cmd_init(args) -> int:
             "(needed for time axes and the NWB/C3D/movement exports)"
         )
     overrides["tracking"]["fps"] = float(fps)
+    sleap = None
+    if getattr(args, "from_sleap_session", None):
+        sleap = _sleap_session_overrides(args, overrides)
     path = init_project(root, overwrite=args.overwrite, **{k: v for k, v in overrides.items() if v})
+    if sleap is not None:
+        notes += _write_sleap_session(root, args.from_sleap_session, sleap, args.overwrite)
     print(f"acm-rs init: wrote {path}" + (" for a DeepLabCut project" if dlc is not None else ""))
     for line in notes:
         print(line)
-    if dlc is None:
+    if sleap is not None:
+        print("  calibration and 2D tracks are in place: set project.model to a skeleton whose "
+              "markers are the SLEAP nodes")  # fmt: skip
+    elif dlc is None:
         print("  edit it (board, camera regex, pcutoff), then put one folder per session beside it")
     else:
         print("  put one board video per camera in calibration/, then run `acm-rs run-all`")
     return 0
+
+
+def _sleap_session_overrides(args, overrides: dict):
+    """Read a SLEAP session for ``init --from-sleap-session`` (nothing written yet) and set
+    the config: its cameras in session order, found by the file names this route writes."""
+    from .sleap_session import read_sleap_session
+
+    sess = read_sleap_session(args.from_sleap_session, individual=args.individual)
+    overrides.setdefault("cameras", {}).update(regex=r"^[^.]+", names=list(sess.rig.names))
+    if sess.individual is not None:
+        overrides["project"]["individual"] = sess.individual
+    return sess
+
+
+def _write_sleap_session(root: Path, file: str, sess, overwrite: bool) -> list[str]:
+    """Write the session's calibration and one analysis file per camera into the project."""
+    from .sleap_session import write_session_views
+
+    calib = root / SCHEMA["paths"]["calibration"].default
+    if calib.exists() and not overwrite:
+        raise FileExistsError(f"{calib} exists; pass --overwrite to replace it")
+    sess.rig.save(calib, metadata={"source": f"SLEAP session {Path(file).name}"})
+    views = root / Path(file).stem.removesuffix(".pkg") / SCHEMA["paths"]["labels"].default
+    files = write_session_views(file, views)
+    return [
+        f"  SLEAP session {sess.summary()}",
+        f"  wrote {calib} and {len(files)} per-camera files in {views}",
+    ]
 
 
 def add_subcommands(sub) -> None:
@@ -927,4 +1168,10 @@ def add_subcommands(sub) -> None:
         "--fps", type=float, help="video frame rate in Hz (default: from the videos' metadata)"
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing config.toml")
+    p.add_argument(
+        "--from-sleap-session", metavar="FILE.slp",
+        help="import a SLEAP multi-camera session: its calibration (calibration/calibration."
+        "toml) and per-camera 2D tracks (<file stem>/pose-2d/<camera>.analysis.h5)",
+    )  # fmt: skip
+    p.add_argument("--individual", help="with --from-sleap-session: the track to reconstruct")
     p.set_defaults(func=_cmd_init)

@@ -1,7 +1,6 @@
 """Calibration boards: the spec (anipose keys, TOML), 3D corner positions and rendering.
 
-A board spec uses the keys of anipose / sleap-anipose (top level or in a ``[calibration]``
-table)::
+A board spec uses the keys of anipose (top level or in a ``[calibration]`` table)::
 
     board_type = "charuco"              # or "checkerboard"
     board_size = [7, 5]                 # squares in x and y
@@ -10,6 +9,13 @@ table)::
     board_marker_bits = 4               # ChArUco only: DICT_<bits>X<bits>_<number>
     board_marker_dict_number = 50       # ChArUco only
     legacy_pattern = false              # ChArUco only: OpenCV < 4.6 board layout
+
+sleap-anipose's ``board.toml`` (``sleap_anipose.calibration.write_board``) is read too: its
+keys ``board_x``, ``board_y``, ``square_length``, ``marker_length``, ``marker_bits`` and
+``dict_size`` stand for ``board_size``, ``board_square_side_length``, ``board_marker_length``,
+``board_marker_bits`` and ``board_marker_dict_number``; it names no board type, and, as
+sleap-anipose's ``read_board`` does, a file with ``marker_length`` is a ChArUco board and one
+without a checkerboard.
 
 ``board_points`` are the corners OpenCV reports, in board units with ``z = 0``:
 
@@ -29,6 +35,30 @@ from pathlib import Path
 import numpy as np
 
 BOARD_TYPES = ("checkerboard", "charuco")
+
+
+#: sleap-anipose's board.toml keys (``write_board``) -> anipose's.
+SLEAP_ANIPOSE_KEYS = {
+    "square_length": "board_square_side_length",
+    "marker_length": "board_marker_length",
+    "marker_bits": "board_marker_bits",
+    "dict_size": "board_marker_dict_number",
+}
+
+
+def _from_sleap_anipose(d: dict) -> dict:
+    """sleap-anipose's board keys as anipose's (board type from ``marker_length``, as
+    ``sleap_anipose.calibration.read_board`` decides)."""
+    if "board_x" not in d or "board_y" not in d:
+        raise ValueError("a sleap-anipose board needs both board_x and board_y")
+    mixed = [k for k in ("board_size", *SLEAP_ANIPOSE_KEYS.values()) if k in d]
+    if mixed:
+        raise ValueError(f"board spec mixes sleap-anipose keys (board_x, board_y) with {mixed}")
+    out = {k: v for k, v in d.items() if k not in ("board_x", "board_y", *SLEAP_ANIPOSE_KEYS)}
+    out["board_size"] = [d["board_x"], d["board_y"]]
+    out.update({new: d[old] for old, new in SLEAP_ANIPOSE_KEYS.items() if old in d})
+    out.setdefault("board_type", "charuco" if "marker_length" in d else "checkerboard")
+    return out
 
 
 @dataclass(frozen=True)
@@ -90,6 +120,8 @@ class BoardSpec:
         """Board from anipose keys (a ``[calibration]`` sub-table is looked into too)."""
         if "calibration" in d and isinstance(d["calibration"], dict):
             d = {**d, **d["calibration"]}
+        if "board_x" in d or "board_y" in d:
+            d = _from_sleap_anipose(d)
         missing = [
             k for k in ("board_type", "board_size", "board_square_side_length") if k not in d
         ]
@@ -107,7 +139,7 @@ class BoardSpec:
 
     @classmethod
     def load(cls, path: str | Path) -> BoardSpec:
-        """Read a board spec TOML file (anipose keys)."""
+        """Read a board spec TOML file (anipose keys, or sleap-anipose's ``board.toml``)."""
         p = Path(path)
         try:
             doc = tomllib.loads(p.read_text(encoding="utf-8"))

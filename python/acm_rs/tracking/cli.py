@@ -5,6 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+_CAM_REGEX_HELP = (
+    "regex finding the camera name in the file names (first group, else the whole match; "
+    r"default '(?i)cam(?:era)?[-_]?[a-z0-9]+'; anipose projects: their cam_regex)"
+)
+
 
 def _frame_slice(spec: str | None, n: int) -> slice:
     if not spec:
@@ -44,11 +49,11 @@ def _cmd_track(args: argparse.Namespace) -> int:
     from ..dlc import read_labels
     from ..models import load_name_or_file
     from ..project import rig_for_files
+    from .any_length import track
     from .bundle import write_bundle
-    from .track import track
 
     _track_outputs(args, Path(args.output))
-    rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names)
+    rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names, args.cam_regex)
     if table:
         print("acm-rs track: cameras matched by the names in the files:\n  "
               + table.replace("\n", "\n  "))  # fmt: skip
@@ -130,7 +135,7 @@ def _cmd_track_long(args: argparse.Namespace) -> int:
         lik = np.load(args.likelihood, mmap_mode="r") if args.likelihood else None
         rig = CameraRig.load(args.calibration, names=args.camera_names)
     else:
-        rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names)
+        rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names, args.cam_regex)
         if table:
             print("acm-rs track-long: cameras matched by the names in the files:\n  "
                   + table.replace("\n", "\n  "))  # fmt: skip
@@ -255,6 +260,7 @@ def add_subcommands(sub) -> None:
         help="calibrated camera names in the order of --dlc (default: from the file names "
         "when each names one camera, e.g. rat-cam0DLC_...h5; else the calibration's order)",
     )  # fmt: skip
+    p.add_argument("--cam-regex", help=_CAM_REGEX_HELP)
     p.add_argument(
         "--skeleton", default="rat", help="learned skeleton TOML (acm-rs learn) or a model name"
     )
@@ -320,6 +326,7 @@ def add_subcommands(sub) -> None:
     )
     t.add_argument("--calibration", required=True, help="anipose calibration.toml")
     t.add_argument("--camera-names", nargs="+", help="calibrated camera names in input order")
+    t.add_argument("--cam-regex", help=_CAM_REGEX_HELP)
     t.add_argument(
         "--skeleton", default="rat", help="learned skeleton TOML (acm-rs learn) or a model name"
     )
