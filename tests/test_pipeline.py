@@ -72,7 +72,7 @@ def test_run_all_tracks_exports_plots_and_resumes(project, capsys):
     assert pose.stat().st_mtime_ns == before
     # a changed setting redoes track, and the new pose.npz (new run id) redoes export
     cfg = root / "config.toml"
-    cfg.write_text(cfg.read_text().replace("pcutoff = 0.9", "pcutoff = 0.8"))
+    cfg.write_text(cfg.read_text().replace('pcutoff = "auto"', "pcutoff = 0.8"))
     assert main(["run-all", str(root), "--steps", "track,export"]) == 1
     out = capsys.readouterr().out
     assert "redoing" in out and "settings changed: tracking" in out

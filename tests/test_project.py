@@ -15,7 +15,7 @@ def test_init_then_load_defaults(tmp_path):
     cfg = pj.load_config(tmp_path / "proj")
     assert cfg.root == (tmp_path / "proj").resolve()
     assert cfg.project["model"] == "rat" and cfg.project["body_weight"] is None
-    assert cfg.tracking["pcutoff"] == 0.9 and cfg.em == {"max_iter": 100, "tol": 0.05}
+    assert cfg.tracking["pcutoff"] == "auto" and cfg.em == {"max_iter": 100, "tol": 0.05}
     board = cfg.board()
     assert board["board_type"] == "charuco" and board["board_size"] == [10, 7]
     assert board["legacy_pattern"] is False and board["board_marker_dict_number"] == 50
@@ -40,15 +40,18 @@ def _edit(path, old, new):
 @pytest.mark.parametrize(
     "old, new, match",
     [
-        ("pcutoff = 0.9", "pcutof = 0.9", r"unknown key tracking.pcutof; did you mean 'pcutoff'\?"),
+        ('pcutoff = "auto"', "pcutof = 0.9",
+         r"unknown key tracking.pcutof; did you mean 'pcutoff'\?"),
         ("[em]", "[emm]", r"unknown section \[emm\]; did you mean 'em'\?"),
         ("max_iter = 100", "max_iter = 1.5", r"em.max_iter must be an integer, got float 1.5"),
-        ("pcutoff = 0.9", 'pcutoff = "high"', r"tracking.pcutoff must be a number, got str"),
+        ('pcutoff = "auto"', 'pcutoff = "high"',
+         r"tracking.pcutoff = 'high' is invalid: expected a likelihood in \[0, 1\] or \"auto\""),
+        ('pcutoff = "auto"', "pcutoff = true", r"tracking.pcutoff must be"),
         ("legacy_pattern = false", "legacy_pattern = 0", r"legacy_pattern must be true/false"),
         ("max_iter = 100", "max_iter = true", r"em.max_iter must be an integer, got bool"),
         ("board_size = [10, 7]", "board_size = [10]", r"board_size = \[10\] is invalid: expected"),
         ('regex = "', 'regex = "(', r"cameras.regex = .* is invalid"),
-        ("pcutoff = 0.9", "pcutoff = 0.9\npcutoff = 0.8", r"invalid TOML"),
+        ('pcutoff = "auto"', "pcutoff = 0.9\npcutoff = 0.8", r"invalid TOML"),
     ],
 )
 def test_load_config_messages(tmp_path, old, new, match):

@@ -9,11 +9,14 @@ The analysis file is written here with h5py in the layout SLEAP writes (``tracks
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import h5py
 import numpy as np
 import pytest
 
-from acm_rs.labels import mask_by_likelihood
+from acm_rs.dlc import concat_labels, read_labels
+from acm_rs.labels import PCUTOFF_BY_SOURCE, default_pcutoff, mask_by_likelihood
 from acm_rs.sleap import read_sleap_analysis
 
 
@@ -73,3 +76,52 @@ def test_a_cutoff_that_drops_most_of_a_camera_is_said():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         mask_by_likelihood(pts, lik, 0.2)  # keeps everything: nothing to say
+
+
+REAL = Path(__file__).parent / "data" / "real"
+
+
+def test_each_source_gets_its_own_default_cutoff():
+    assert default_pcutoff(["sleap", "sleap", None])[0] == PCUTOFF_BY_SOURCE["sleap"] == 0.2
+    assert default_pcutoff(["deeplabcut"])[0] == PCUTOFF_BY_SOURCE["deeplabcut"] == 0.9
+    assert default_pcutoff([None])[0] == 0.9  # nothing known: DeepLabCut's
+    with pytest.raises(ValueError, match="different scales.*explicitly"):
+        default_pcutoff(["deeplabcut", "sleap"])
+    with pytest.raises(ValueError, match="different scales"):
+        default_pcutoff(["deeplabcut+sleap"])  # one camera, two recordings from two tools
+
+
+def test_real_files_get_the_cutoff_of_their_tool_and_sleap_keeps_its_points():
+    """On the real proofread sleap-anipose views (predicted points with scores), the SLEAP
+    default keeps most predicted points where DeepLabCut's 0.9 would drop most of them."""
+    folder = REAL / "sleap" / "sleap_anipose"
+    views = [folder / f"minimal_{v}_proofread.slp" for v in ("mid", "top")]
+    dlc = REAL / "dlc" / "CollectedData_Mackenzie.h5"
+    if not all(p.exists() for p in [*views, dlc]):
+        pytest.skip("the real-file corpus is not present")
+    ls = read_labels(views)
+    assert ls.sources == ["sleap", "sleap"]
+    cut, why = ls.resolve_pcutoff(None)
+    assert cut == 0.2 and "SLEAP" in why
+    assert ls.resolve_pcutoff("auto") == (0.2, why) and ls.resolve_pcutoff(0.5)[0] == 0.5
+    lik = ls.likelihood
+    present = np.isfinite(ls.points).all(axis=-1)
+    kept = lambda c: np.mean(lik[present] >= c)  # noqa: E731
+    assert kept(cut) > 0.8 > 0.4 > kept(0.9)
+    d = read_labels([dlc])
+    assert d.sources == ["deeplabcut"] and d.resolve_pcutoff(None)[0] == 0.9
+    assert concat_labels([ls, ls]).sources == ["sleap", "sleap"]
+
+
+def test_project_pcutoff_is_auto_by_default_and_checked(tmp_path):
+    from acm_rs.project import init_project, load_config
+
+    cfg = load_config(init_project(tmp_path / "p"))
+    assert cfg.tracking["pcutoff"] == "auto"
+    bad = tmp_path / "q"
+    init_project(bad, tracking={"pcutoff": 0.5})
+    assert load_config(bad / "config.toml").tracking["pcutoff"] == 0.5
+    text = (bad / "config.toml").read_text().replace("pcutoff = 0.5", 'pcutoff = "high"')
+    (bad / "config.toml").write_text(text)
+    with pytest.raises(ValueError, match="pcutoff"):
+        load_config(bad / "config.toml")

@@ -91,13 +91,14 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         f"acm-rs learn: {skeleton.name} ({skeleton.n_markers} markers), {len(rig)} cameras, "
         f"{labels.points.shape[1]} labelled frames, {len(labels.bodyparts)} body parts"
     )
+    pcutoff, why = labels.resolve_pcutoff(args.pcutoff)
     if labels.likelihood is not None:
-        low = int(np.sum(labels.likelihood < args.pcutoff))
-        print(f"  predictions: {low} labels below pcutoff {args.pcutoff} are not used")
+        low = int(np.sum(labels.likelihood < pcutoff))
+        print(f"  predictions: {low} labels below pcutoff {pcutoff:g} ({why}) are not used")
     res = learn_skeleton(
         rig, skeleton, labels.points, body_weight=args.body_weight,
         symmetric=not args.no_symmetry, marker_names=labels.bodyparts, progress=None,
-        likelihood=labels.likelihood, pcutoff=args.pcutoff,
+        likelihood=labels.likelihood, pcutoff=pcutoff,
     )  # fmt: skip
     out = Path(args.output)
     files = res.save(out.with_suffix(""))
@@ -161,9 +162,10 @@ def build_parser() -> argparse.ArgumentParser:
     lp.add_argument("--individual", help="individual to use in multi-animal label files")
     lp.add_argument("--body-weight", type=float, help="body weight (g) for bone-length priors")
     lp.add_argument(
-        "--pcutoff", type=float, default=0.9,
-        help="labels from DeepLabCut predictions: likelihood cutoff in [0, 1] (default 0.9); "
-        "manual CollectedData files have no likelihood and are used whole",
+        "--pcutoff", type=float, default=None,
+        help="labels from predictions: likelihood cutoff in [0, 1] (default by the files' tool: "
+        "0.9 DeepLabCut, 0.2 SLEAP); manual CollectedData files have no likelihood and are "
+        "used whole",
     )  # fmt: skip
     lp.add_argument("--no-symmetry", action="store_true", help="do not enforce left/right symmetry")
     lp.add_argument("-o", "--output", help="learned skeleton TOML to write")

@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import re
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .labels import default_pcutoff
 from .sleap import is_sleap_analysis, read_sleap_analysis, read_slp
 
 __all__ = ["LabelSet", "concat_labels", "read_dlc_table", "read_labels", "shift_labels"]
@@ -38,12 +39,38 @@ class LabelSet:
     frames : numpy.ndarray, shape (n_frames,)
         Frame number of each row (parsed from image names, else the row number).
     bodyparts : list of str
+    sources : list of str or None
+        Per camera, the tool that wrote its file ("deeplabcut", "sleap"; None: no file):
+        its scores decide the default likelihood cutoff (:meth:`default_pcutoff`).
     """
 
     points: np.ndarray
     likelihood: np.ndarray | None
     frames: np.ndarray
     bodyparts: list[str]
+    sources: list[str | None] = field(default_factory=list)
+
+    def default_pcutoff(self) -> tuple[float, str]:
+        """The likelihood cutoff for these files' scores and why
+        (:func:`acm_rs.labels.default_pcutoff`: 0.9 for DeepLabCut, 0.2 for SLEAP)."""
+        return default_pcutoff(self.sources)
+
+    def resolve_pcutoff(self, pcutoff: float | str | None) -> tuple[float, str]:
+        """``pcutoff`` as given (a number), or for None/"auto" the cutoff of the files'
+        source, each with a phrase for the log."""
+        if pcutoff is None or pcutoff == "auto":
+            return self.default_pcutoff()
+        return float(pcutoff), "given"
+
+
+def label_source(path: str | Path) -> str:
+    """The tool that wrote a 2D label file: "sleap" for ``.slp`` and SLEAP analysis
+    ``.h5``, else "deeplabcut" (DeepLabCut's tables, also written by Lightning Pose)."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == ".slp" or (suffix in (".h5", ".hdf5") and p.exists() and is_sleap_analysis(p)):
+        return "sleap"
+    return "deeplabcut"
 
 
 def _frame_number(label: object, fallback: int) -> int:
@@ -269,7 +296,8 @@ def read_labels(paths: Sequence[str | Path | None], individual: str | None = Non
             # manual labels (no likelihood) mixed with predictions: a label counts as certain
             lk = lk if lk is not None else np.where(np.isfinite(p[..., 0]), 1.0, np.nan)
             lik[c, rows[:, None], cols[None, :]] = lk
-    return LabelSet(pts, lik, frames, bodyparts)
+    sources = [label_source(p) if p is not None else None for p in paths]
+    return LabelSet(pts, lik, frames, bodyparts, sources)
 
 
 def shift_labels(labels: LabelSet, offsets: np.ndarray | None) -> LabelSet:
@@ -293,7 +321,7 @@ def shift_labels(labels: LabelSet, offsets: np.ndarray | None) -> LabelSet:
             f"crop offsets must be finite, shape ({labels.points.shape[0]}, 2), got {off.shape}"
         )
     pts = labels.points + off[:, None, None, :]
-    return LabelSet(pts, labels.likelihood, labels.frames, labels.bodyparts)
+    return LabelSet(pts, labels.likelihood, labels.frames, labels.bodyparts, labels.sources)
 
 
 def concat_labels(sets: Sequence[LabelSet]) -> LabelSet:
@@ -330,4 +358,10 @@ def concat_labels(sets: Sequence[LabelSet]) -> LabelSet:
         np.concatenate(liks, axis=1) if any_lik else None,
         np.concatenate([s.frames for s in sets]),
         bodyparts,
+        # per camera, the sources of all recordings ("deeplabcut+sleap" if they differ)
+        [
+            "+".join(sorted({s.sources[c] for s in sets if c < len(s.sources) and s.sources[c]}))
+            or None
+            for c in range(pts[0].shape[0])
+        ],
     )

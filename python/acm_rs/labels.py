@@ -84,6 +84,36 @@ def labels_in_skeleton_order(
 #: Fraction of a camera's points that a likelihood cutoff may drop before it is said.
 DROPPED_WARNING = 0.5
 
+#: Default likelihood cutoff per source of 2D points (``pcutoff="auto"``; issue 27 item 9).
+#: DeepLabCut (and Lightning Pose, which writes its tables): 0.9, the ACM paper's value for
+#: DeepLabCut likelihoods. SLEAP: 0.2, SLEAP's own ``peak_threshold`` (sleap.nn.inference),
+#: below which SLEAP reports no point; sleap-anipose triangulates with no score cutoff. SLEAP's
+#: scores are confidence-map peaks, not probabilities: on the predicted points of the real
+#: SLEAP files in tests/data/real/sleap, 0.9 keeps 14-58 %, 0.2 keeps 80-100 %.
+PCUTOFF_BY_SOURCE = {"deeplabcut": 0.9, "sleap": 0.2}
+
+
+def default_pcutoff(sources: Sequence[str | None]) -> tuple[float, str]:
+    """The cutoff for labels from ``sources`` (one per camera file: "deeplabcut", "sleap",
+    None for a camera without a file) and a phrase saying why, e.g. ``(0.2, "SLEAP's
+    peak threshold")``. Files from tools with different defaults are refused (their scores
+    are not comparable: give ``pcutoff`` explicitly)."""
+    known = sorted({part for s in sources if s for part in s.split("+")})
+    if not known:
+        return PCUTOFF_BY_SOURCE["deeplabcut"], "DeepLabCut's default in acm-rs"
+    unknown = [s for s in known if s not in PCUTOFF_BY_SOURCE]
+    if unknown:
+        raise ValueError(f"unknown label source(s) {unknown}; known: {sorted(PCUTOFF_BY_SOURCE)}")
+    values = {PCUTOFF_BY_SOURCE[s] for s in known}
+    if len(values) > 1:
+        raise ValueError(
+            f"label files from {' and '.join(known)}, whose scores are on different scales: "
+            "give the likelihood cutoff explicitly (pcutoff / --pcutoff)"
+        )
+    why = {"deeplabcut": "the ACM paper's cutoff for DeepLabCut likelihoods",
+           "sleap": "SLEAP's own peak threshold"}  # fmt: skip
+    return values.pop(), why[known[0]]
+
 
 def mask_by_likelihood(
     points: np.ndarray, likelihood: np.ndarray | None, pcutoff: float, warn: bool = True

@@ -255,10 +255,13 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
     ]
     # labelled frames come from the (cropped) videos: anipose crop offsets apply too
     labels = shift_labels(concat_labels(sets), config.offsets_for(names))
+    pcutoff, why = labels.resolve_pcutoff(config.tracking["pcutoff"])
+    if labels.likelihood is not None:
+        _say(f"learn: likelihood cutoff {pcutoff:g} ({why})")
     res = learn_skeleton(
         rig, generic, labels.points, body_weight=config.project.get("body_weight"),
         marker_names=labels.bodyparts, progress=None, likelihood=labels.likelihood,
-        pcutoff=config.tracking["pcutoff"],
+        pcutoff=pcutoff,
     )  # fmt: skip
     res.skeleton.save(out)
     prov.write_record(out, fresh)
@@ -325,8 +328,11 @@ def step_track(
     ls = shift_labels(ls, config.offsets_for(session.cameras))  # anipose crop offsets
     dt = int(config.tracking["dt"])
     lik = ls.likelihood[:, ::dt] if ls.likelihood is not None else None
+    pcutoff, why = ls.resolve_pcutoff(config.tracking["pcutoff"])
+    if lik is not None:
+        _say(f"track {session.name}: likelihood cutoff {pcutoff:g} ({why})")
     res = track(
-        rig, skeleton, ls.points[:, ::dt], likelihood=lik, pcutoff=config.tracking["pcutoff"],
+        rig, skeleton, ls.points[:, ::dt], likelihood=lik, pcutoff=pcutoff,
         max_iter=config.em["max_iter"], tol=config.em["tol"], marker_names=ls.bodyparts,
         progress=None,
     )  # fmt: skip

@@ -191,11 +191,12 @@ SCHEMA: dict[str, dict[str, _Opt]] = {
     },
     "tracking": {
         "pcutoff": _Opt(
-            0.9,
-            _NUM,
-            "detections with a lower likelihood are treated as missing",
-            lambda v: 0 <= v <= 1,
-            "a likelihood in [0, 1]",
+            "auto",
+            (*_NUM, str),
+            'detections with a lower likelihood are treated as missing; "auto": by the label '
+            "files' tool (0.9 DeepLabCut, 0.2 SLEAP)",
+            lambda v: v == "auto" if isinstance(v, str) else 0 <= v <= 1,
+            'a likelihood in [0, 1] or "auto"',
         ),
         "dt": _Opt(1, (int,), "track every dt-th frame", lambda v: v >= 1, "an integer >= 1"),
         "fps": _Opt(

@@ -226,7 +226,9 @@ def read_sleap_session(
             notes.append(f"camera {cams[c].name!r} has no instance of track {slp.tracks[k]!r}")
     for note in notes:
         warnings.warn(f"{slp.path}: {note}", stacklevel=2)
-    labels = LabelSet(pts, lik, np.arange(n_frames, dtype=np.int64), list(slp.nodes))
+    labels = LabelSet(
+        pts, lik, np.arange(n_frames, dtype=np.int64), list(slp.nodes), ["sleap"] * len(cams)
+    )
     return SleapSession(
         path=slp.path, rig=CameraRig(cams), videos=vids, tracks=list(slp.tracks),
         individual=slp.tracks[k] if k is not None else None, labels=labels,

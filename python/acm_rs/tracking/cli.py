@@ -64,6 +64,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
         )
     skeleton = load_name_or_file(args.skeleton)
     ls = read_labels(args.dlc, individual=args.individual)
+    pcutoff, why = ls.resolve_pcutoff(args.pcutoff)
+    if ls.likelihood is not None:
+        print(f"acm-rs track: likelihood cutoff {pcutoff:g} ({why})")
     sel = _frame_slice(args.frame_range, ls.points.shape[1])
     points = ls.points[:, sel]
     lik = ls.likelihood[:, sel] if ls.likelihood is not None else None
@@ -71,7 +74,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         print("acm-rs track: the files have no likelihood column; using every detection")
     out = Path(args.output)
     opts = {
-        "likelihood": lik, "pcutoff": args.pcutoff, "joint_limits": not args.no_limits,
+        "likelihood": lik, "pcutoff": pcutoff, "joint_limits": not args.no_limits,
         "max_iter": args.max_iter, "tol": args.tol, "gate": None if args.no_gate else args.gate,
         "marker_names": ls.bodyparts, "stop": args.stop, "ll_tol": args.ll_tol,
     }  # fmt: skip
@@ -134,6 +137,7 @@ def _cmd_track_long(args: argparse.Namespace) -> int:
         points = np.load(args.npy, mmap_mode="r")
         lik = np.load(args.likelihood, mmap_mode="r") if args.likelihood else None
         rig = CameraRig.load(args.calibration, names=args.camera_names)
+        pcutoff = args.pcutoff if args.pcutoff is not None else 0.9
     else:
         rig, table = rig_for_files(args.calibration, args.dlc, args.camera_names, args.cam_regex)
         if table:
@@ -141,6 +145,9 @@ def _cmd_track_long(args: argparse.Namespace) -> int:
                   + table.replace("\n", "\n  "))  # fmt: skip
         ls = read_labels(args.dlc, individual=args.individual)
         points, lik, names = ls.points, ls.likelihood, ls.bodyparts
+        pcutoff, why = ls.resolve_pcutoff(args.pcutoff)
+        if lik is not None:
+            print(f"acm-rs track-long: likelihood cutoff {pcutoff:g} ({why})")
     method = args.method or ("chunked" if args.scheduler else "streaming")
     how = (
         f"the streaming smoother in segments of {args.chunk}" if method == "streaming"
@@ -152,7 +159,7 @@ def _cmd_track_long(args: argparse.Namespace) -> int:
         f"{args.scheduler or f'{args.workers} threads'}"
     )
     info = track_long(
-        rig, skeleton, points, out, likelihood=lik, pcutoff=args.pcutoff, marker_names=names,
+        rig, skeleton, points, out, likelihood=lik, pcutoff=pcutoff, marker_names=names,
         joint_limits=not args.no_limits, motion=args.motion, subset=args.subset,
         n_windows=args.windows, chunk=args.chunk, burn_in=args.burn_in, tol=args.seam_tol,
         gate=None if args.no_gate else args.gate, client=args.scheduler, workers=args.workers,
@@ -273,7 +280,11 @@ def add_subcommands(sub) -> None:
         "--individual", help="individual (DeepLabCut) or track (SLEAP) in multi-animal files"
     )
     p.add_argument("--frames", dest="frame_range", help="frame range START:END (row indices)")
-    p.add_argument("--pcutoff", type=float, default=0.9, help="likelihood cutoff (0.9)")
+    p.add_argument(
+        "--pcutoff", type=float, default=None,
+        help="likelihood cutoff in [0, 1] (default by the files' tool: 0.9 DeepLabCut, 0.2 SLEAP; "
+        "0.9 for --npy)",
+    )  # fmt: skip
     p.add_argument("--max-iter", type=int, default=100, help="EM iterations at most (100)")
     p.add_argument(
         "--stop", choices=["loglik", "alg13"], default="loglik",
@@ -341,7 +352,11 @@ def add_subcommands(sub) -> None:
     )  # fmt: skip
     t.add_argument("--likelihood", help="likelihoods (n_cams, T, n_markers) .npy for --npy")
     t.add_argument("--individual", help="individual in multi-animal files")
-    t.add_argument("--pcutoff", type=float, default=0.9, help="likelihood cutoff (0.9)")
+    t.add_argument(
+        "--pcutoff", type=float, default=None,
+        help="likelihood cutoff in [0, 1] (default by the files' tool: 0.9 DeepLabCut, 0.2 SLEAP; "
+        "0.9 for --npy)",
+    )  # fmt: skip
     t.add_argument("--gate", type=float, default=0.999, help="outlier gate probability (0.999)")
     t.add_argument("--no-gate", action="store_true", help="use every confident detection")
     t.add_argument("--no-limits", action="store_true", help="do not enforce joint-angle limits")
