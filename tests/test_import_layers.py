@@ -58,6 +58,8 @@ LAYERS: dict[str, int] = {
     "acm_rs.calibration": 2,
     "acm_rs.gapfill": 2,
     "acm_rs.datasets": 2,
+    "acm_rs.lab_skeleton": 2,
+    "acm_rs.evaluate": 2,
     # 1: data types, their files and the input readers; figure helpers.
     "acm_rs.skeleton": 1,
     "acm_rs.state": 1,

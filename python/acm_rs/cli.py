@@ -112,6 +112,79 @@ def _cmd_learn(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rig_and_labels(args: argparse.Namespace):
+    """``(rig, LabelSet, what)`` from ``--session`` (a SLEAP multi-camera .slp) or from
+    ``--calibration`` with one ``--labels`` file per camera (as ``learn``)."""
+    if args.session:
+        from .sleap_session import read_sleap_session
+
+        ses = read_sleap_session(args.session, individual=args.individual)
+        return ses.rig, ses.labels, ses.summary()
+    if not (args.calibration and args.labels):
+        raise ValueError("give --session FILE.slp, or --calibration with --labels (one per camera)")
+    from .dlc import read_labels
+    from .project import rig_for_files
+
+    rig, table = rig_for_files(args.calibration, args.labels, args.camera_names, args.cam_regex)
+    if len(args.labels) != len(rig):
+        raise ValueError(f"{len(args.labels)} label files for {len(rig)} cameras (one per camera)")
+    labels = read_labels(args.labels, individual=args.individual)
+    return rig, labels, table or f"{len(rig)} cameras from {args.calibration}"
+
+
+def _cmd_from_labels(args: argparse.Namespace) -> int:
+    from ._io import check_output_path
+    from .lab_skeleton import skeleton_from_labels
+
+    check_output_path(args.output, args.overwrite)
+    rig, labels, what = _rig_and_labels(args)
+    print(f"acm-rs model from-labels: {what}")
+    pcutoff, why = labels.resolve_pcutoff(args.pcutoff)
+    res = skeleton_from_labels(
+        args.definition, rig, labels, pcutoff=pcutoff if labels.likelihood is not None else 0.0,
+        root=args.root, joint_limits=not args.no_joint_limits,
+        limit_margin_deg=args.limit_margin, name=args.name,
+    )  # fmt: skip
+    if labels.likelihood is not None:
+        print(f"  likelihood cutoff {pcutoff:g} ({why})")
+    print(res.summary())
+    res.skeleton.save(args.output)
+    print(f"  wrote {args.output} (use it as --model / project.model for learn, track, run-all)")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate
+    from .models import load_name_or_file
+
+    rig, labels, what = _rig_and_labels(args)
+    print(f"acm-rs evaluate: {what}")
+    pcutoff, why = labels.resolve_pcutoff(args.pcutoff)
+    ev = evaluate(
+        rig, load_name_or_file(args.model), labels, relearn=args.relearn,
+        pcutoff=pcutoff if labels.likelihood is not None else 0.0,
+    )  # fmt: skip
+    print(ev.table())
+    print(ev.summary())
+    if args.output:
+        for f in ev.save(args.output):
+            print(f"  wrote {f}")
+    return 0
+
+
+def _add_label_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--session", help="SLEAP .slp with a multi-camera session (calibration+labels)")
+    p.add_argument("--calibration", help="anipose calibration.toml (with --labels)")
+    p.add_argument("--labels", nargs="+", help="labelled frames, one file per camera (as learn)")
+    p.add_argument("--camera-names", nargs="+", help="cameras in label-file order (as learn)")
+    p.add_argument("--cam-regex", help="regex of the camera name in the file names (as learn)")
+    p.add_argument("--individual", help="individual (track) in multi-animal label files")
+    p.add_argument(
+        "--pcutoff", type=float, default=None,
+        help="likelihood cutoff of predicted labels (default by the files' tool)",
+    )  # fmt: skip
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``acm-rs``."""
     from .pipeline import add_project_option, project_step_or
@@ -139,6 +212,35 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--plot", help="write a PNG of the rest pose")
     m.add_argument("--overwrite", action="store_true", help="replace an existing --save file")
     m.set_defaults(func=_cmd_model)
+    fl = sub.add_parser(
+        "model-from-labels",
+        help="a skeleton from a lab's keypoints (DeepLabCut config.yaml, SLEAP .slp/.json, "
+        "DANNCE .mat, anipose config.toml) and its labelled frames; also 'model from-labels'",
+    )
+    fl.add_argument("definition", help="the lab's keypoint definition file (or DLC project)")
+    _add_label_options(fl)
+    fl.add_argument("--root", help="root keypoint (default: the centre of the tree)")
+    fl.add_argument("--no-joint-limits", action="store_true", help="no joint-angle limits")
+    fl.add_argument(
+        "--limit-margin", type=float, default=30.0,
+        help="degrees added on each side of the labelled angle ranges (default 30)",
+    )  # fmt: skip
+    fl.add_argument("--name", help="model name (default: the definition file's name)")
+    fl.add_argument("-o", "--output", required=True, help="skeleton TOML to write")
+    fl.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    fl.set_defaults(func=_cmd_from_labels)
+    ev = sub.add_parser(
+        "evaluate",
+        help="leave-one-camera-out accuracy on labelled frames: skeleton fit vs triangulation",
+    )
+    ev.add_argument("--model", required=True, help="(learned) skeleton TOML or bundled model")
+    _add_label_options(ev)
+    ev.add_argument(
+        "--relearn", action="store_true",
+        help="learn the skeleton again without the held-out camera in each fold",
+    )  # fmt: skip
+    ev.add_argument("-o", "--output", help="prefix of the CSV tables and the PNG figure")
+    ev.set_defaults(func=_cmd_evaluate)
     lp = sub.add_parser(
         "learn", help="learn bone lengths and marker offsets from labelled frames (sec. 3.2)"
     )
@@ -199,6 +301,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``acm-rs`` command."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    i = next((k for k, a in enumerate(argv) if not a.startswith("-")), len(argv))
+    if argv[i : i + 2] == ["model", "from-labels"]:  # the two-word spelling
+        argv[i : i + 2] = ["model-from-labels"]
     args = build_parser().parse_args(argv)
     if getattr(args, "frames", 1) < 1:
         print("acm-rs: --frames must be >= 1", file=sys.stderr)

@@ -272,6 +272,16 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
     for line in res.summary().splitlines():
         if "WARNING" in line or "note:" in line:
             _say("learn: " + line.strip())
+    if len(rig) >= 3:  # leave-one-camera-out accuracy on the labels (docs/lab_keypoints.md)
+        from .evaluate import evaluate
+
+        try:
+            ev = evaluate(rig, res.skeleton, labels, pcutoff=pcutoff)
+        except ValueError as exc:
+            _say(f"learn: no leave-one-camera-out evaluation: {exc}")
+        else:
+            files = ev.save(out.with_name("evaluation"))
+            _say(f"learn: {ev.summary()} -> {files[0].name}, {files[-1].name}")
     return out
 
 
