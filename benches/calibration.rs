@@ -2,7 +2,7 @@
 //! exact CSR Jacobian for a real-rig-sized problem (4 cameras, 220 board views, 9×6 board,
 //! 11,880 detections).
 
-use acm_rs::calibration::CalibrationProblem;
+use acm_rs::calibration::{CalibrationProblem, CAM_SKEW, N_CAM_PARAMS};
 use acm_rs::camera::Camera;
 use acm_rs::rotation::rodrigues;
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -31,6 +31,7 @@ fn problem() -> (CalibrationProblem, Vec<f64>) {
         let intr = [1200.0 + 10.0 * c as f64, 1195.0, 640.0, 512.0, -0.12, 0.03];
         params.extend_from_slice(&intr);
         params.extend_from_slice(&[r.x, r.y, r.z, t.x, t.y, t.z]);
+        params.push(0.0); // skew, held fixed below (the solver's default)
         let mut p15 = [0.0; 15];
         p15[..3].copy_from_slice(&[r.x, r.y, r.z]);
         p15[3..6].copy_from_slice(&[t.x, t.y, t.z]);
@@ -65,7 +66,10 @@ fn problem() -> (CalibrationProblem, Vec<f64>) {
             }
         }
     }
-    let fixed = vec![false; params.len()];
+    let mut fixed = vec![false; params.len()];
+    for c in 0..nc {
+        fixed[c * N_CAM_PARAMS + CAM_SKEW] = true;
+    }
     let p = CalibrationProblem::new(nc, nf, &board, &corners, 0, &params, &fixed)
         .expect("valid problem");
     let x = p.free_indices().iter().map(|&i| params[i]).collect();

@@ -308,12 +308,13 @@ def project_np(
     ``x_cam = R(rvec) x + tvec``; ``x' = X / Z``, ``y' = Y / Z``, ``r2 = x'^2 + y'^2``;
     ``x'' = x' (1 + k1 r2 + k2 r2^2 + k3 r2^3) + 2 p1 x' y' + p2 (r2 + 2 x'^2)``,
     ``y'' = y' (1 + k1 r2 + k2 r2^2 + k3 r2^3) + p1 (r2 + 2 y'^2) + 2 p2 x' y'``;
-    ``u = fx x'' + cx``, ``v = fy y'' + cy``.
+    ``u = fx x'' + s y'' + cx``, ``v = fy y'' + cy`` (skew ``s``, MATLAB's; 0 in OpenCV's).
 
     Parameters
     ----------
-    params : array_like, shape (C, 15)
-        Per camera ``[rx, ry, rz, tx, ty, tz, fx, fy, cx, cy, k1, k2, p1, p2, k3]``.
+    params : array_like, shape (C, 16) or (C, 15)
+        Per camera ``[rx, ry, rz, tx, ty, tz, fx, fy, cx, cy, k1, k2, p1, p2, k3, s]``;
+        15 columns: no skew.
     points : array_like, shape (..., 3)
         World coordinates.
     block : int
@@ -325,8 +326,9 @@ def project_np(
         Pixels ``(u, v)``; NaN for NaN points and for points with depth ``Z <= MIN_DEPTH``.
     """
     params = np.asarray(params, dtype=np.float64)
-    if params.ndim != 2 or params.shape[1] != 15:
-        raise ValueError(f"params must have shape (C, 15), got {params.shape}")
+    if params.ndim != 2 or params.shape[1] not in (15, 16):
+        raise ValueError(f"params must have shape (C, 16) or (C, 15), got {params.shape}")
+    skew = params[:, 15, None] if params.shape[1] == 16 else np.zeros((params.shape[0], 1))
     points = np.asarray(points, dtype=np.float64)
     if points.shape[-1:] != (3,):
         raise ValueError(f"points must have shape (..., 3), got {points.shape}")
@@ -371,6 +373,7 @@ def project_np(
         y += ty
         y += np.multiply(two_p2, xy, out=ty)
         x *= fx
+        x += skew * y
         x += cx
         y *= fy
         y += cy

@@ -11,8 +11,9 @@
 //! # Parameter layout
 //! The full parameter vector is
 //! `[camera 0 | camera 1 | … | camera C−1 | board view 0 | … | board view F−1]` with
-//! [`N_CAM_PARAMS`] = 12 entries per camera `[fx, fy, cx, cy, k1, k2, rx, ry, rz, tx, ty, tz]`
-//! (the paper's camera model: radial `k1, k2` only, eq. 5) and [`N_VIEW_PARAMS`] = 6 per board
+//! [`N_CAM_PARAMS`] = 13 entries per camera `[fx, fy, cx, cy, k1, k2, rx, ry, rz, tx, ty, tz, s]`
+//! (the paper's camera model: radial `k1, k2` only, eq. 5; the skew `s` of MATLAB's model,
+//! usually held fixed at 0 as OpenCV's calibration does) and [`N_VIEW_PARAMS`] = 6 per board
 //! view `[rx, ry, rz, tx, ty, tz]` (board → world). A boolean mask marks fixed parameters; the
 //! reference camera's `r, t` (the world frame), board views without any detection, and anything
 //! the caller fixes (e.g. known intrinsics) are held at their initial values. The solver sees
@@ -28,8 +29,10 @@ use crate::rotation::rodrigues_jacobian;
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-/// Parameters per camera in the calibration layout: `[fx, fy, cx, cy, k1, k2, r(3), t(3)]`.
-pub const N_CAM_PARAMS: usize = 12;
+/// Parameters per camera in the calibration layout: `[fx, fy, cx, cy, k1, k2, r(3), t(3), s]`.
+pub const N_CAM_PARAMS: usize = 13;
+/// Position of the skew in a camera's calibration block.
+pub const CAM_SKEW: usize = 12;
 /// Parameters per board view: `[r(3), t(3)]` of the board → world transform.
 pub const N_VIEW_PARAMS: usize = 6;
 /// Residual (px, both coordinates) reported for a detection whose board corner lies at or
@@ -37,7 +40,7 @@ pub const N_VIEW_PARAMS: usize = 6;
 /// rejects it; the Jacobian rows of such detections are zero.
 pub const BEHIND_PENALTY: f64 = 1.0e5;
 
-/// Position of calibration-layout camera entry `k` in [`Camera`]'s 15-parameter vector.
+/// Position of calibration-layout camera entry `k` in [`Camera`]'s parameter vector.
 const CAM_TO_CAMERA: [usize; N_CAM_PARAMS] = [
     param::FX,
     param::FY,
@@ -51,6 +54,7 @@ const CAM_TO_CAMERA: [usize; N_CAM_PARAMS] = [
     param::TVEC,
     param::TVEC + 1,
     param::TVEC + 2,
+    param::SKEW,
 ];
 
 /// Board → world rotation, its derivatives `∂R/∂r_k` and the translation of one view.
@@ -106,7 +110,7 @@ impl CalibrationProblem {
     /// * `corners` - flat `(C, F, P, 2)` detected pixels; NaN (in either coordinate) marks a
     ///   corner that was not detected.
     /// * `reference` - the camera whose `r, t` define the world frame (held fixed).
-    /// * `params0` - full initial parameter vector (`12 C + 6 F`, layout in the module docs).
+    /// * `params0` - full initial parameter vector (`13 C + 6 F`, layout in the module docs).
     /// * `fixed` - full-length mask of parameters to hold at their initial values.
     ///
     /// # Errors
@@ -209,7 +213,7 @@ impl CalibrationProblem {
 
         // Free mask: caller's mask, plus the reference pose and views nobody saw.
         let mut is_fixed = fixed.to_vec();
-        for k in 6..N_CAM_PARAMS {
+        for k in 6..CAM_SKEW {
             is_fixed[cam_offset(reference) + k] = true;
         }
         for (f, seen) in frame_seen.iter().enumerate() {
@@ -297,7 +301,7 @@ impl CalibrationProblem {
         self.n_frames
     }
 
-    /// Length of the full parameter vector, `12 C + 6 F`.
+    /// Length of the full parameter vector, `13 C + 6 F`.
     pub fn n_full(&self) -> usize {
         self.base.len()
     }
@@ -352,7 +356,7 @@ impl CalibrationProblem {
         Ok(full)
     }
 
-    /// Cameras (15-parameter model with `p1 = p2 = k3 = 0`) from a full parameter vector.
+    /// Cameras (the model with `p1 = p2 = k3 = 0`) from a full parameter vector.
     fn cameras(&self, full: &[f64]) -> Result<Vec<Camera>> {
         (0..self.n_cams)
             .map(|c| {
@@ -547,6 +551,7 @@ mod tests {
             } else {
                 params.extend_from_slice(&[0.02 * cf, -0.3 * cf, 0.01, 0.3 * cf, 0.01, 0.05]);
             }
+            params.push(3.0 - 2.5 * cf); // skew (px), nonzero on two cameras
         }
         for f in 0..nf {
             let ff = f as f64;
@@ -562,14 +567,14 @@ mod tests {
         // Project to make the "detections", and drop some.
         let mut corners = vec![f64::NAN; nc * nf * np * 2];
         for c in 0..nc {
-            let b = &params[c * 12..c * 12 + 12];
+            let b = &params[c * N_CAM_PARAMS..(c + 1) * N_CAM_PARAMS];
             let mut p = [0.0; N_PARAMS];
             for (k, &dst) in CAM_TO_CAMERA.iter().enumerate() {
                 p[dst] = b[k];
             }
             let cam = Camera::from_params(&p).unwrap();
             for f in 0..nf {
-                let v = &params[nc * 12 + 6 * f..nc * 12 + 6 * f + 6];
+                let v = &params[nc * N_CAM_PARAMS + 6 * f..nc * N_CAM_PARAMS + 6 * f + 6];
                 let rot = rodrigues(&Vector3::new(v[0], v[1], v[2]));
                 for j in 0..np {
                     if (c + 2 * f + 3 * j) % 7 == 0 {
@@ -607,6 +612,7 @@ mod tests {
         assert!(r.iter().all(|v| v.abs() <= 0.2 + 1e-9), "{r:?}");
         // The reference camera's r, t are not free.
         assert!(p.free_indices().iter().all(|&i| !(6..12).contains(&i)));
+        assert!(p.free_indices().contains(&CAM_SKEW)); // ... but its skew is
         assert_eq!(p.n_free(), params.len() - 6);
         // Observation order is ascending flat index.
         assert!(p.observation_index().windows(2).all(|w| w[0] < w[1]));
@@ -616,7 +622,7 @@ mod tests {
     fn jacobian_matches_central_finite_differences() {
         let (nc, nf, board, corners, params) = synthetic();
         let mut fixed = vec![false; params.len()];
-        fixed[12 + 4] = true; // camera 1's k1 held fixed: its column must disappear
+        fixed[N_CAM_PARAMS + 4] = true; // camera 1's k1 held fixed: its column must disappear
         let p = CalibrationProblem::new(nc, nf, &board, &corners, 1, &params, &fixed).unwrap();
         let x0: Vec<f64> = p.free_indices().iter().map(|&i| params[i]).collect();
         let x = perturbed(&x0);
@@ -653,8 +659,10 @@ mod tests {
             }
         }
         // Fixed parameters (camera 1 = reference r, t; camera 1 k1) have no column.
-        assert!(!p.free_indices().contains(&(12 + 4)));
-        assert!(!p.free_indices().contains(&(12 + 6)));
+        assert!(!p.free_indices().contains(&(N_CAM_PARAMS + 4)));
+        assert!(!p.free_indices().contains(&(N_CAM_PARAMS + 6)));
+        // every camera's skew is free here (the FD check above covered its column)
+        assert!((0..nc).all(|c| p.free_indices().contains(&(c * N_CAM_PARAMS + CAM_SKEW))));
     }
 
     #[test]
@@ -668,7 +676,7 @@ mod tests {
         }
         let fixed = vec![false; params.len()];
         let p = CalibrationProblem::new(nc, nf, &board, &corners, 0, &params, &fixed).unwrap();
-        let vo = 12 * nc + 6 * 2;
+        let vo = N_CAM_PARAMS * nc + 6 * 2;
         assert!(p.free_indices().iter().all(|&i| !(vo..vo + 6).contains(&i)));
         // Camera 2 sees nothing.
         let s = 2 * nf * np * 2;
@@ -696,7 +704,7 @@ mod tests {
             Err(AcmError::Invalid(_))
         ));
         let mut neg = params.clone();
-        neg[12] = -1.0;
+        neg[N_CAM_PARAMS] = -1.0;
         assert!(matches!(
             CalibrationProblem::new(nc, nf, &board, &corners, 0, &neg, &fixed),
             Err(AcmError::Invalid(_))
@@ -714,7 +722,7 @@ mod tests {
     fn board_behind_a_camera_is_penalised_not_projected() {
         let (nc, nf, board, corners, mut params) = synthetic();
         // Move view 0 behind every camera.
-        params[12 * nc + 5] = -1.0;
+        params[N_CAM_PARAMS * nc + 5] = -1.0;
         let fixed = vec![false; params.len()];
         let p = CalibrationProblem::new(nc, nf, &board, &corners, 0, &params, &fixed).unwrap();
         let x: Vec<f64> = p.free_indices().iter().map(|&i| params[i]).collect();

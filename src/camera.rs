@@ -6,8 +6,14 @@
 //! `p1 = p2 = k3 = 0`.
 //!
 //! A camera is described by the flat parameter vector of [`N_PARAMS`] values
-//! `[rx, ry, rz, tx, ty, tz, fx, fy, cx, cy, k1, k2, p1, p2, k3]` (see [`param`]), where
+//! `[rx, ry, rz, tx, ty, tz, fx, fy, cx, cy, k1, k2, p1, p2, k3, s]` (see [`param`]), where
 //! `x_cam = R(r) x_world + t` (eq. 4).
+//!
+//! The skew `s` (px) is beyond OpenCV's model, which has none: MATLAB's `cameraParameters`
+//! (and Bouguet's toolbox, `alpha_c · fx`) apply it after distortion,
+//! `u = fx x'' + s y'' + cx`, `v = fy y'' + cy`. Calibrations from MATLAB (Label3D, DANNCE)
+//! carry it; `s = 0` is OpenCV's model, bit for bit. The first 15 entries are the model
+//! without skew, and [`Camera::from_params`] also takes those 15 (skew 0).
 
 use crate::error::{ensure_finite, ensure_len, AcmError, Result};
 use crate::rotation::rodrigues_jacobian;
@@ -15,7 +21,11 @@ use nalgebra::{Matrix2x3, Matrix3, SMatrix, Vector2, Vector3};
 use rayon::prelude::*;
 
 /// Number of parameters of one camera.
-pub const N_PARAMS: usize = 15;
+pub const N_PARAMS: usize = 16;
+
+/// Parameters of a camera without skew (OpenCV's model, the layout before skew existed);
+/// accepted wherever [`N_PARAMS`] are, with skew 0.
+pub const N_PARAMS_NO_SKEW: usize = 15;
 
 /// Indices into the camera parameter vector.
 pub mod param {
@@ -33,6 +43,8 @@ pub mod param {
     pub const CY: usize = 9;
     /// OpenCV distortion `(k1, k2, p1, p2, k3)` (5 entries from here).
     pub const DIST: usize = 10;
+    /// Skew (px): `u = fx x'' + s y'' + cx` (MATLAB's `K(2, 1)`); 0 in OpenCV's model.
+    pub const SKEW: usize = 15;
 }
 
 /// Points with a camera-frame depth at or below this value (world units) are "behind" the
@@ -57,18 +69,21 @@ pub struct ProjectionJacobian {
     pub pixel: Vector2<f64>,
     /// `∂(u, v)/∂x_world` (2×3).
     pub d_point: Matrix2x3<f64>,
-    /// `∂(u, v)/∂params` (2×15) in the order of [`param`].
+    /// `∂(u, v)/∂params` (2×16) in the order of [`param`].
     pub d_params: ParamJacobian,
 }
 
 impl Camera {
-    /// Builds a camera from its flat parameter vector (layout in [`param`]).
+    /// Builds a camera from its flat parameter vector (layout in [`param`]); the 15 values
+    /// without skew ([`N_PARAMS_NO_SKEW`]) are a camera with skew 0.
     ///
     /// # Errors
-    /// Shape error for a length other than [`N_PARAMS`], non-finite error for NaN/inf,
-    /// invalid error for non-positive focal lengths.
+    /// Shape error for a length other than [`N_PARAMS`] or [`N_PARAMS_NO_SKEW`], non-finite
+    /// error for NaN/inf, invalid error for non-positive focal lengths.
     pub fn from_params(params: &[f64]) -> Result<Self> {
-        ensure_len(params.len(), N_PARAMS, "camera parameter vector")?;
+        if params.len() != N_PARAMS_NO_SKEW {
+            ensure_len(params.len(), N_PARAMS, "camera parameter vector")?;
+        }
         ensure_finite(params, "camera parameters")?;
         if params[param::FX] <= 0.0 || params[param::FY] <= 0.0 {
             return Err(AcmError::Invalid(format!(
@@ -78,7 +93,7 @@ impl Camera {
             )));
         }
         let mut p = [0.0; N_PARAMS];
-        p.copy_from_slice(params);
+        p[..params.len()].copy_from_slice(params);
         let (rot, drot) = rodrigues_jacobian(&Vector3::new(p[0], p[1], p[2]));
         Ok(Self {
             params: p,
@@ -87,19 +102,35 @@ impl Camera {
         })
     }
 
-    /// Builds cameras from `n` concatenated parameter vectors (flat, `15 n`).
+    /// Builds cameras from `n` concatenated parameter vectors (flat, `16 n`).
     ///
     /// # Errors
     /// As [`Camera::from_params`], naming the camera index.
     pub fn many_from_params(params: &[f64]) -> Result<Vec<Self>> {
-        if params.is_empty() || params.len() % N_PARAMS != 0 {
+        Self::many_from_rows(params, N_PARAMS)
+    }
+
+    /// Builds cameras from `n` concatenated rows of `width` parameters: [`N_PARAMS`], or
+    /// [`N_PARAMS_NO_SKEW`] for rows without skew (files written before skew existed).
+    ///
+    /// # Errors
+    /// Shape error for another width or a length that is not a positive multiple of it; else
+    /// as [`Camera::from_params`], naming the camera index.
+    pub fn many_from_rows(params: &[f64], width: usize) -> Result<Vec<Self>> {
+        if width != N_PARAMS && width != N_PARAMS_NO_SKEW {
             return Err(AcmError::Shape(format!(
-                "camera parameters: {} values is not a positive multiple of {N_PARAMS}",
+                "camera parameters: rows of {width} values; expected {N_PARAMS} (with skew) or \
+                 {N_PARAMS_NO_SKEW} (without)"
+            )));
+        }
+        if params.is_empty() || params.len() % width != 0 {
+            return Err(AcmError::Shape(format!(
+                "camera parameters: {} values is not a positive multiple of {width}",
                 params.len()
             )));
         }
         params
-            .chunks(N_PARAMS)
+            .chunks(width)
             .enumerate()
             .map(|(i, p)| {
                 Self::from_params(p).map_err(|e| match e {
@@ -136,8 +167,13 @@ impl Camera {
         self.rot * x + self.translation()
     }
 
+    /// The skew `s` (px).
+    pub fn skew(&self) -> f64 {
+        self.params[param::SKEW]
+    }
+
     /// Distortion and intrinsics applied to normalised image coordinates `(x', y')`
-    /// (eqs. 5-6 with OpenCV's tangential and k3 terms).
+    /// (eqs. 5-6 with OpenCV's tangential and k3 terms, then MATLAB's skew).
     fn distort(&self, xn: f64, yn: f64) -> Vector2<f64> {
         let p = &self.params;
         let (k1, k2, p1, p2, k3) = (p[10], p[11], p[12], p[13], p[14]);
@@ -145,7 +181,8 @@ impl Camera {
         let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
         let xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn);
         let yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn;
-        Vector2::new(p[6] * xd + p[8], p[7] * yd + p[9])
+        // `fx x'' + 0 y''` is `fx x''` exactly: skew 0 is OpenCV's projection bit for bit
+        Vector2::new(p[6] * xd + p[15] * yd + p[8], p[7] * yd + p[9])
     }
 
     /// Projects a world point to pixels (eq. 4); `None` if the point is not in front of the
@@ -159,14 +196,14 @@ impl Camera {
     }
 
     /// Projects a world point and returns the exact Jacobians with respect to the point and
-    /// to all 15 camera parameters; `None` if the point is behind the camera.
+    /// to all 16 camera parameters; `None` if the point is behind the camera.
     pub fn project_jacobian(&self, x: &Vector3<f64>) -> Option<ProjectionJacobian> {
         let y = self.to_camera(x);
         if y.z <= MIN_DEPTH {
             return None;
         }
         let p = &self.params;
-        let (fx, fy) = (p[6], p[7]);
+        let (fx, fy, s) = (p[6], p[7], p[15]);
         let (k1, k2, p1, p2, k3) = (p[10], p[11], p[12], p[13], p[14]);
         let iz = 1.0 / y.z;
         let (xn, yn) = (y.x * iz, y.y * iz);
@@ -175,14 +212,19 @@ impl Camera {
         let dradial = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
         let xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn);
         let yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn;
-        let pixel = Vector2::new(fx * xd + p[8], fy * yd + p[9]);
+        let pixel = Vector2::new(fx * xd + s * yd + p[8], fy * yd + p[9]);
 
         // ∂(x'', y'')/∂(x', y')
         let cross = 2.0 * xn * yn * dradial + 2.0 * p1 * xn + 2.0 * p2 * yn;
         let dxd_dxn = radial + 2.0 * xn * xn * dradial + 2.0 * p1 * yn + 6.0 * p2 * xn;
         let dyd_dyn = radial + 2.0 * yn * yn * dradial + 6.0 * p1 * yn + 2.0 * p2 * xn;
-        // ∂(u, v)/∂(x', y')
-        let d_norm = nalgebra::Matrix2::new(fx * dxd_dxn, fx * cross, fy * cross, fy * dyd_dyn);
+        // ∂(u, v)/∂(x', y'), with u = fx x'' + s y'' + cx
+        let d_norm = nalgebra::Matrix2::new(
+            fx * dxd_dxn + s * cross,
+            fx * cross + s * dyd_dyn,
+            fy * cross,
+            fy * dyd_dyn,
+        );
         // ∂(x', y')/∂y_cam
         let d_proj = Matrix2x3::new(iz, 0.0, -xn * iz, 0.0, iz, -yn * iz);
         let d_cam = d_norm * d_proj; // ∂(u, v)/∂y_cam
@@ -198,6 +240,7 @@ impl Camera {
         d_params[(1, param::FY)] = yd;
         d_params[(0, param::CX)] = 1.0;
         d_params[(1, param::CY)] = 1.0;
+        d_params[(0, param::SKEW)] = yd;
         let r4 = r2 * r2;
         let dist_cols = [
             (xn * r2, yn * r2),                  // k1
@@ -207,7 +250,7 @@ impl Camera {
             (xn * r4 * r2, yn * r4 * r2),        // k3
         ];
         for (k, (a, b)) in dist_cols.iter().enumerate() {
-            d_params[(0, param::DIST + k)] = fx * a;
+            d_params[(0, param::DIST + k)] = fx * a + s * b;
             d_params[(1, param::DIST + k)] = fy * b;
         }
         Some(ProjectionJacobian {
@@ -349,7 +392,7 @@ pub struct ProjectedJacobians {
     pub pixels: Vec<f64>,
     /// `(c, n, 2, 3)` derivatives with respect to the world point; NaN where behind.
     pub d_point: Vec<f64>,
-    /// `(c, n, 2, 15)` derivatives with respect to the camera parameters; NaN where behind.
+    /// `(c, n, 2, 16)` derivatives with respect to the camera parameters; NaN where behind.
     pub d_params: Vec<f64>,
 }
 
@@ -445,9 +488,62 @@ mod tests {
         assert!(proj.pixels[0].is_nan() && !proj.in_front[0]);
     }
 
+    /// [`test_camera`] with a MATLAB-sized skew (the Label3D rig's camera 1 has −5.8 px).
+    fn skewed_camera() -> Camera {
+        let mut p = *test_camera().params();
+        p[param::SKEW] = -5.8;
+        Camera::from_params(&p).unwrap()
+    }
+
+    #[test]
+    fn skew_is_applied_after_distortion() {
+        // MATLAB's cameraParameters: [u v] = [x'' y'' 1] K, K = [fx 0 0; s fy 0; cx cy 1].
+        let (plain, skewed) = (test_camera(), skewed_camera());
+        let x = Vector3::new(0.15, 0.2, 0.4);
+        let (a, b) = (plain.project(&x).unwrap(), skewed.project(&x).unwrap());
+        let p = plain.params();
+        let yd = (a.y - p[param::CY]) / p[param::FY]; // y'' from the skew-free v
+        assert!((b.x - (a.x - 5.8 * yd)).abs() < 1e-9, "{a} {b}");
+        assert_eq!(a.y, b.y);
+        assert_eq!(skewed.skew(), -5.8);
+    }
+
+    #[test]
+    fn zero_skew_and_fifteen_parameters_are_the_skew_free_model() {
+        let cam = test_camera();
+        let mut p16 = [0.0; N_PARAMS];
+        p16[..N_PARAMS_NO_SKEW].copy_from_slice(&cam.params()[..N_PARAMS_NO_SKEW]);
+        assert_eq!(Camera::from_params(&p16).unwrap(), cam);
+        let rows: Vec<f64> = [cam.params()[..15].to_vec(), cam.params()[..15].to_vec()].concat();
+        let two = Camera::many_from_rows(&rows, N_PARAMS_NO_SKEW).unwrap();
+        assert_eq!(two, vec![cam.clone(), cam.clone()]);
+        assert!(matches!(
+            Camera::many_from_rows(&rows, 14),
+            Err(AcmError::Shape(_))
+        ));
+        // the skew-free formula of eq. 6, evaluated independently, bit for bit
+        let x = Vector3::new(0.15, 0.2, 0.4);
+        let y = cam.to_camera(&x);
+        let (xn, yn) = (y.x / y.z, y.y / y.z);
+        let q = cam.params();
+        let r2 = xn * xn + yn * yn;
+        let radial = 1.0 + r2 * (q[10] + r2 * (q[11] + r2 * q[14]));
+        let xd = xn * radial + 2.0 * q[12] * xn * yn + q[13] * (r2 + 2.0 * xn * xn);
+        let yd = yn * radial + q[12] * (r2 + 2.0 * yn * yn) + 2.0 * q[13] * xn * yn;
+        let uv = cam.project(&x).unwrap();
+        assert_eq!(uv.x, q[6] * xd + q[8]);
+        assert_eq!(uv.y, q[7] * yd + q[9]);
+        assert_eq!(cam.project_jacobian(&x).unwrap().pixel, uv);
+    }
+
     #[test]
     fn jacobians_match_central_differences() {
-        let cam = test_camera();
+        jacobians_match_central_differences_for(&test_camera());
+        jacobians_match_central_differences_for(&skewed_camera());
+    }
+
+    fn jacobians_match_central_differences_for(cam: &Camera) {
+        let cam = cam.clone();
         let x = Vector3::new(0.15, 0.2, 0.4);
         let j = cam.project_jacobian(&x).unwrap();
         let h = 1e-6;

@@ -37,8 +37,9 @@ fn project_one_camera(
 }
 
 /// One camera's projection (eq. 4 with the distortion of eqs. 5-6) fused with the pixel
-/// normalisation of eq. 11, for the hot loop of the emission: `u_n = a_u x'' + b_u` with
-/// `a_u = f_x / c_u`, `b_u = c_x / c_u − 1` (likewise `v`), one division per point.
+/// normalisation of eq. 11, for the hot loop of the emission: `u_n = a_u x'' + s_u y'' + b_u`
+/// with `a_u = f_x / c_u`, `s_u = s / c_u` (skew), `b_u = c_x / c_u − 1` (likewise `v`, no
+/// skew term), one division per point.
 /// The same model as [`Camera::project`] followed by [`Normalization::normalize_pixel`];
 /// the results agree to rounding.
 #[derive(Debug, Clone, Copy)]
@@ -50,6 +51,8 @@ struct NormalizedProjector {
     dist: [f64; 5],
     /// `a_u, b_u, a_v, b_v`.
     affine: [f64; 4],
+    /// `s_u = s / c_u` (0 without skew: `a_u x'' + 0 y''` is `a_u x''` exactly).
+    skew: f64,
 }
 
 impl NormalizedProjector {
@@ -69,6 +72,7 @@ impl NormalizedProjector {
             t: [t.x, t.y, t.z],
             dist: [p[10], p[11], p[12], p[13], p[14]],
             affine: [p[6] / cu, p[8] / cu - 1.0, p[7] / cv, p[9] / cv - 1.0],
+            skew: p[crate::camera::param::SKEW] / cu,
         }
     }
 
@@ -79,6 +83,7 @@ impl NormalizedProjector {
         let (r, t) = (&self.r, &self.t);
         let [k1, k2, p1, p2, k3] = self.dist;
         let [au, bu, av, bv] = self.affine;
+        let su = self.skew;
         for (o, m) in out.chunks_exact_mut(2).zip(markers.chunks_exact(3)) {
             let x = r[0] * m[0] + r[1] * m[1] + r[2] * m[2] + t[0];
             let y = r[3] * m[0] + r[4] * m[1] + r[5] * m[2] + t[1];
@@ -94,7 +99,7 @@ impl NormalizedProjector {
             let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
             let xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn);
             let yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn;
-            o[0] = au * xd + bu;
+            o[0] = au * xd + su * yd + bu;
             o[1] = av * yd + bv;
         }
     }
@@ -106,6 +111,7 @@ impl NormalizedProjector {
         t: [0.0; 3],
         dist: [0.0; 5],
         affine: [0.0; 4],
+        skew: 0.0,
     };
 }
 
@@ -365,6 +371,7 @@ mod tests {
             0.0,
             0.0,
             0.0,
+            4.5, // skew: the fused projector must apply it as Camera::project does
         ])
         .unwrap();
         vec![c0, c1]

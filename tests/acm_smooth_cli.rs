@@ -51,7 +51,7 @@ fn arrays() -> BTreeMap<String, Array> {
     .unwrap();
     let em = SkeletonEmission::new(
         sk.clone(),
-        Camera::many_from_params(&cams).unwrap(),
+        Camera::many_from_rows(&cams, 15).unwrap(),
         map,
         norm,
     )

@@ -80,7 +80,7 @@ fn model() -> SkeletonEmission {
             ]
         })
         .collect();
-    SkeletonEmission::new(sk, Camera::many_from_params(&cams).unwrap(), map, norm).unwrap()
+    SkeletonEmission::new(sk, Camera::many_from_rows(&cams, 15).unwrap(), map, norm).unwrap()
 }
 
 /// How a test runs the steps.

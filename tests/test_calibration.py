@@ -100,15 +100,17 @@ def test_jacobian_matches_finite_differences():
     cams = []
     for c in rec.rig:
         p = c.params
-        cams.append([p[6], p[7], p[8], p[9], p[10], p[11], *p[0:3], *p[3:6]])
+        # [fx, fy, cx, cy, k1, k2, r, t, skew]; a nonzero skew, free, for its column's check
+        cams.append([p[6], p[7], p[8], p[9], p[10], p[11], *p[0:3], *p[3:6], 2.0])
     poses = np.concatenate([rec.board_rvecs, rec.board_tvecs], axis=1)
     params = np.concatenate([np.ravel(cams), poses.ravel()])
     params += rng.normal(0, 1e-3, params.size) * np.maximum(np.abs(params), 1)
     fixed = np.zeros(params.size, bool)
-    fixed[12 + 4] = True  # camera 1's k1
+    fixed[13 + 4] = True  # camera 1's k1
     prob = _native.NativeCalibration(rec.board_points, rec.corners, 0, params, fixed)
     free = prob.free_indices
-    assert 12 + 4 not in free and not np.isin(np.arange(6, 12), free).any()
+    assert 13 + 4 not in free and not np.isin(np.arange(6, 12), free).any()
+    assert {12, 25, 38} <= set(free)  # every skew is free here (the reference camera's too)
     x = params[free]
     jac = csr_matrix(
         (prob.jacobian_data(x), prob.indices, prob.indptr),
@@ -124,7 +126,7 @@ def test_jacobian_matches_finite_differences():
     scale = np.abs(jac).max(axis=0) + 1e-12
     assert np.max(np.abs(fd - jac) / scale) < 1e-6
     assert prob.residuals(x)[1] == 0
-    assert n_cams * 12 + n_frames * 6 == prob.n_full
+    assert n_cams * 13 + n_frames * 6 == prob.n_full
 
 
 def test_fixed_known_intrinsics_stay_fixed(four_cam):
@@ -133,7 +135,7 @@ def test_fixed_known_intrinsics_stay_fixed(four_cam):
     np.testing.assert_array_equal(res.rig.get_params()[:, 6:12], rec.rig.get_params()[:, 6:12])
     for ct, ce in zip(rec.rig, res.rig, strict=True):
         assert np.linalg.norm(ct.center - ce.center) < 2.0
-    assert res.info["fixed"]["cam_0"] == ["fx", "fy", "cx", "cy", "k1", "k2"]
+    assert res.info["fixed"]["cam_0"] == ["fx", "fy", "cx", "cy", "k1", "k2", "skew"]
     # Per-camera fixing by name.
     res2 = calibrate(
         rec.corners, rec.board_points, SIZE, fix={"cam1": ["k2"]}, camera_names=rec.rig.names
@@ -293,7 +295,7 @@ def test_infinite_corners_and_shapes(small):
 
 
 def test_native_errors_are_value_errors(small):
-    n_full = 12 * 3 + 6 * 15
+    n_full = 13 * 3 + 6 * 15
     with pytest.raises(ValueError, match="fixed"):
         _native.NativeCalibration(
             small.board_points, small.corners, 0, np.ones(n_full), np.zeros(n_full - 1, bool)

@@ -98,9 +98,12 @@ def test_bad_input(rig):
     with pytest.raises(ValueError, match="NaN"):
         acm_rs.Camera(k, [0, 0], [np.nan, 0, 0], np.zeros(3))
     skewed = k.copy()
-    skewed[0, 1] = 3.0
+    skewed[0, 1] = 3.0  # a skew is part of the model (tests/test_camera_skew.py) ...
+    assert acm_rs.Camera(skewed, [0, 0], np.zeros(3), np.zeros(3)).skew == 3.0
+    lower = k.copy()
+    lower[1, 0] = 3.0  # ... a lower-triangle entry is not (a MATLAB K, transposed)
     with pytest.raises(ValueError, match="matrix must be"):
-        acm_rs.Camera(skewed, [0, 0], np.zeros(3), np.zeros(3))
+        acm_rs.Camera(lower, [0, 0], np.zeros(3), np.zeros(3))
     with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
         rig.project(np.zeros((4, 2)))
     with pytest.raises(ValueError, match="unique"):

@@ -155,7 +155,7 @@ def test_bad_input(synthetic):
     with pytest.raises(ValueError, match="infinity"):
         acm_rs.learn_skeleton(rig, rat, bad, progress=False)
     with pytest.raises(ValueError, match="NaN"):  # a NaN calibration cannot even be built
-        rig.set_params(np.where(np.arange(15) == 3, np.nan, rig.get_params()))
+        rig.set_params(np.where(np.arange(16) == 3, np.nan, rig.get_params()))
 
 
 def write_dlc_csv(path, frames, bodyparts, xy):

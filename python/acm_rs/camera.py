@@ -1,8 +1,10 @@
 """Pinhole cameras with OpenCV distortion (ACM supplement section 2.1, eqs. 4-6).
 
 ``x_cam = R(rvec) x_world + tvec`` (eq. 4); distortion ``(k1, k2, p1, p2, k3)`` in OpenCV order
-(the paper's eq. 5 is the case ``p1 = p2 = k3 = 0``); pixels ``u = fx x'' + cx``,
-``v = fy y'' + cy`` (eq. 6). Projection runs in Rust; points behind a camera give NaN pixels
+(the paper's eq. 5 is the case ``p1 = p2 = k3 = 0``); pixels ``u = fx x'' + s y'' + cx``,
+``v = fy y'' + cy`` (eq. 6). The skew ``s`` is MATLAB's (``cameraParameters``, Bouguet's
+``alpha_c fx``), applied after distortion; OpenCV has none (``s = 0``, which gives OpenCV's
+projection bit for bit). Projection runs in Rust; points behind a camera give NaN pixels
 (and ``False`` in :meth:`Camera.in_front`), never a silently mirrored projection.
 """
 
@@ -20,10 +22,13 @@ from ._arrays import as_float_array
 from ._io import atomic_write
 from .rotation import rodrigues
 
-#: Order of the 15 camera parameters used by :attr:`Camera.params` and the Jacobians.
+#: Order of the 16 camera parameters used by :attr:`Camera.params` and the Jacobians; the
+#: first 15 are OpenCV's model (arrays of 15 columns are accepted as cameras without skew).
 PARAM_NAMES: tuple[str, ...] = (
     "rx", "ry", "rz", "tx", "ty", "tz", "fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3",
+    "skew",
 )  # fmt: skip
+N_PARAMS = len(PARAM_NAMES)
 
 
 class Camera:
@@ -32,7 +37,8 @@ class Camera:
     Parameters
     ----------
     matrix : array_like, shape (3, 3)
-        Camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` in pixels (no skew).
+        Camera matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels; ``s`` is the skew
+        (MATLAB's ``K(2, 1)``, applied after distortion), 0 in OpenCV's model.
     dist : array_like, shape (2,) or (5,)
         Distortion: the paper's ``(k1, k2)`` or OpenCV's ``(k1, k2, p1, p2, k3)``.
     rvec : array_like, shape (3,)
@@ -59,8 +65,11 @@ class Camera:
         m = as_float_array(matrix, "matrix", (3, 3))
         if m.ndim != 2:
             raise ValueError(f"matrix must have shape (3, 3), got {m.shape}")
-        if abs(m[0, 1]) > 1e-9 or np.any(np.abs(m[1:, 0]) > 1e-9) or abs(m[2, 1]) > 1e-9:
-            raise ValueError(f"matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {m}")
+        if np.any(np.abs(m[1:, 0]) > 1e-9) or abs(m[2, 1]) > 1e-9:
+            raise ValueError(
+                f"matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {m.tolist()} (a "
+                "MATLAB/DANNCE K is the transpose: pass K.T)"
+            )
         if abs(m[2, 2] - 1.0) > 1e-9:
             raise ValueError(f"matrix[2, 2] must be 1, got {m[2, 2]}")
         d = as_float_array(dist, "dist", (None,)).ravel()
@@ -76,7 +85,7 @@ class Camera:
         t = as_float_array(tvec, "tvec", (3,)).ravel()
         if r.size != 3 or t.size != 3:
             raise ValueError("rvec and tvec must have 3 entries each")
-        params = np.concatenate([r, t, [m[0, 0], m[1, 1], m[0, 2], m[1, 2]], d])
+        params = np.concatenate([r, t, [m[0, 0], m[1, 1], m[0, 2], m[1, 2]], d, [m[0, 1]]])
         self._params = _checked_params(params[None, :])[0]
         self._params.setflags(write=False)
         if size is not None:
@@ -93,24 +102,50 @@ class Camera:
         size: tuple[int, int] | None = None,
         name: str | None = None,
     ) -> Camera:
-        """Build a camera from its 15 parameters (order :data:`PARAM_NAMES`)."""
-        p = as_float_array(params, "params", (15,)).ravel()
-        if p.size != 15:
-            raise ValueError(f"params must have 15 entries, got {p.size}")
-        matrix = np.array([[p[6], 0.0, p[8]], [0.0, p[7], p[9]], [0.0, 0.0, 1.0]])
+        """Build a camera from its 16 parameters (order :data:`PARAM_NAMES`), or the first 15
+        (skew 0)."""
+        p = as_float_array(params, "params", (None,)).ravel()
+        if p.size not in (15, N_PARAMS):
+            raise ValueError(f"params must have 16 (or 15, without skew) entries, got {p.size}")
+        s = p[15] if p.size == N_PARAMS else 0.0
+        matrix = np.array([[p[6], s, p[8]], [0.0, p[7], p[9]], [0.0, 0.0, 1.0]])
         return cls(matrix, p[10:15], p[0:3], p[3:6], size=size, name=name)
 
     # -- parameters -------------------------------------------------------------------------
     @property
     def params(self) -> np.ndarray:
-        """(15,) parameters ``[rvec, tvec, fx, fy, cx, cy, k1, k2, p1, p2, k3]`` (read-only)."""
+        """(16,) parameters ``[rvec, tvec, fx, fy, cx, cy, k1, k2, p1, p2, k3, skew]``
+        (read-only)."""
         return self._params
 
     @property
     def matrix(self) -> np.ndarray:
-        """(3, 3) camera matrix in pixels."""
+        """(3, 3) camera matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` in pixels."""
         p = self._params
-        return np.array([[p[6], 0.0, p[8]], [0.0, p[7], p[9]], [0.0, 0.0, 1.0]])
+        return np.array([[p[6], p[15], p[8]], [0.0, p[7], p[9]], [0.0, 0.0, 1.0]])
+
+    @property
+    def skew(self) -> float:
+        """Skew ``s`` in pixels (``u = fx x'' + s y'' + cx``); 0 in OpenCV's model."""
+        return float(self._params[15])
+
+    @property
+    def opencv_matrix(self) -> np.ndarray:
+        """(3, 3) camera matrix without the skew, for OpenCV functions (which ignore
+        ``matrix[0, 1]``); use it with :meth:`skew_free_pixels`."""
+        m = self.matrix
+        m[0, 1] = 0.0
+        return m
+
+    def skew_free_pixels(self, pixels: np.ndarray) -> np.ndarray:
+        """Pixels ``(..., 2)`` of this camera as the same camera without skew would see them,
+        ``u - s (v - cy) / fy`` (exact: ``v`` has no skew term), so that OpenCV functions
+        (``cv2.undistortPoints``, which ignore the skew) get them right with
+        :attr:`opencv_matrix`. Unchanged (bit for bit) when the skew is 0."""
+        px = np.array(pixels, dtype=np.float64)
+        p = self._params
+        px[..., 0] -= p[15] * ((px[..., 1] - p[9]) / p[7])
+        return px
 
     @property
     def dist(self) -> np.ndarray:
@@ -172,7 +207,7 @@ class Camera:
         pixels : numpy.ndarray, shape (..., 2)
         d_point : numpy.ndarray, shape (..., 2, 3)
             ``d(u, v) / d(x, y, z)``.
-        d_params : numpy.ndarray, shape (..., 2, 15)
+        d_params : numpy.ndarray, shape (..., 2, 16)
             ``d(u, v) / d params`` in the order of :data:`PARAM_NAMES`.
             All three are NaN for missing points and points behind the camera.
         """
@@ -182,20 +217,29 @@ class Camera:
         return (
             px[0].reshape(lead + (2,)),
             dp[0].reshape(lead + (2, 3)),
-            dc[0].reshape(lead + (2, 15)),
+            dc[0].reshape(lead + (2, N_PARAMS)),
         )
 
     def to_dict(self) -> dict:
-        """Anipose ``calibration.toml`` table of this camera."""
+        """Anipose ``calibration.toml`` table of this camera.
+
+        A nonzero skew is written as the key ``skew`` (px), an acm-rs extension that aniposelib
+        ignores (it reads the keys it knows; OpenCV's projection has no skew), with the
+        ``matrix`` skew-free; there is no ``skew`` key when the skew is 0.
+        """
+        matrix = self.matrix
+        matrix[0, 1] = 0.0
         out: dict = {
             "name": self.name if self.name is not None else "",
-            "matrix": self.matrix.tolist(),
+            "matrix": matrix.tolist(),
             "distortions": self.dist.tolist(),
             "rotation": self.rvec.tolist(),
             "translation": self.tvec.tolist(),
         }
         if self.size is not None:
             out["size"] = list(self.size)
+        if self.skew != 0.0:
+            out["skew"] = self.skew
         return out
 
     @classmethod
@@ -215,8 +259,9 @@ class Camera:
         if size is not None:
             _check_size(size, d["matrix"])
         return cls(
-            d["matrix"], d["distortions"], d["rotation"], d["translation"], size, d.get("name")
-        )
+            _matrix_with_skew(d), d["distortions"], d["rotation"], d["translation"], size,
+            d.get("name"),
+        )  # fmt: skip
 
     def __repr__(self) -> str:
         p = self._params
@@ -278,12 +323,13 @@ class CameraRig:
         return [c.name for c in self.cameras]
 
     def get_params(self) -> np.ndarray:
-        """(n_cams, 15) parameters, rows in rig order (see :data:`PARAM_NAMES`)."""
+        """(n_cams, 16) parameters, rows in rig order (see :data:`PARAM_NAMES`)."""
         return np.stack([c.params for c in self.cameras])
 
     def set_params(self, params: np.ndarray) -> CameraRig:
-        """Return a new rig with the given (n_cams, 15) parameters (sizes and names kept)."""
-        p = as_float_array(params, "params", (len(self), 15))
+        """Return a new rig with the given (n_cams, 16) parameters, or (n_cams, 15) without
+        skew (sizes and names kept)."""
+        p = as_float_array(params, "params", (len(self), None))
         return CameraRig(
             (
                 Camera.from_params(row, c.size, c.name)
@@ -300,7 +346,7 @@ class CameraRig:
         if not (np.isfinite(f) and f > 0):
             raise ValueError(f"scale factor must be finite and > 0, got {factor}")
         p = self.get_params().copy()
-        p[:, 3:6] *= f  # [r (3), t (3), fx, fy, cx, cy, k1, k2, p1, p2, k3]
+        p[:, 3:6] *= f  # [r (3), t (3), fx, fy, cx, cy, k1, k2, p1, p2, k3, skew]
         out = self.set_params(p)
         out.units = units if units is not None else (self.units if f == 1.0 else "")
         out.metadata = None if self.metadata is None else dict(self.metadata)  # same calibration
@@ -326,9 +372,10 @@ class CameraRig:
 
         Tables ``[cam_0]``, ``[cam_1]``, ... in rig order with ``name``, ``size``, ``matrix``,
         ``distortions`` (OpenCV order), ``rotation`` (Rodrigues, world to camera) and
-        ``translation``; ``[metadata]``: the rig's :attr:`metadata` (as read), ``units``, then
-        ``metadata`` (which wins on shared keys). An empty ``[metadata]`` table read is written
-        back empty.
+        ``translation``, plus ``skew`` (px) for a camera with nonzero skew (an acm-rs extension
+        that aniposelib ignores, see :meth:`Camera.to_dict`); ``[metadata]``: the rig's
+        :attr:`metadata` (as read), ``units``, then ``metadata`` (which wins on shared keys).
+        An empty ``[metadata]`` table read is written back empty.
         """
         doc: dict = {}
         for i, cam in enumerate(self.cameras):
@@ -432,9 +479,34 @@ def _check_size(size: tuple, matrix) -> None:
     )
 
 
+def _matrix_with_skew(d: dict) -> np.ndarray:
+    """The camera matrix of an anipose table with the acm-rs ``skew`` key applied.
+
+    A nonzero ``matrix[0][1]`` is refused: aniposelib projects with OpenCV, which ignores it,
+    so the file would mean one camera to aniposelib and another to acm-rs.
+    """
+    m = np.array(d["matrix"], dtype=np.float64)
+    if m.shape != (3, 3):
+        raise ValueError(f"matrix must have shape (3, 3), got {m.shape}")
+    if abs(m[0, 1]) > 1e-9:
+        raise ValueError(
+            f"matrix[0][1] = {m[0, 1]:g}: a skewed camera matrix, whose skew aniposelib "
+            "(OpenCV) ignores; write matrix[0][1] = 0 and the skew as the key skew = "
+            f"{m[0, 1]:g} (px), which acm-rs applies"
+        )
+    skew = d.get("skew", 0.0)
+    if isinstance(skew, bool) or not isinstance(skew, (int, float)):
+        raise ValueError(f"skew must be a number (px), got {skew!r}")
+    m[0, 1] = float(skew)
+    return m
+
+
 def _checked_params(params: np.ndarray) -> np.ndarray:
-    """Validate ``(n, 15)`` camera parameters in Rust (finite, focal lengths > 0); a copy."""
+    """Validate ``(n, 16)`` camera parameters in Rust (finite, focal lengths > 0); a copy.
+    ``(n, 15)`` (without skew) gets a zero skew column."""
     params = np.array(params, dtype=np.float64, order="C")
+    if params.ndim == 2 and params.shape[1] == 15:
+        params = np.ascontiguousarray(np.pad(params, ((0, 0), (0, 1))))
     _native.project(params, np.zeros((0, 3)))
     return params
 

@@ -91,9 +91,9 @@ def triangulate(rig: CameraRig, points_2d: np.ndarray, min_views: int = 2) -> np
         ok = np.all(np.isfinite(flat[c]), axis=1)
         if not ok.any():
             continue
-        und = cv2.undistortPoints(flat[c, ok].reshape(-1, 1, 2), cam.matrix, cam.dist).reshape(
-            -1, 2
-        )
+        # OpenCV ignores a skew: remove it from the pixels first (exact; no-op without skew)
+        seen = cam.skew_free_pixels(flat[c, ok]).reshape(-1, 1, 2)
+        und = cv2.undistortPoints(seen, cam.opencv_matrix, cam.dist).reshape(-1, 2)
         proj = np.hstack([cam.rotation_matrix, cam.tvec[:, None]])
         a[ok, 2 * c] = und[:, :1] * proj[2] - proj[0]
         a[ok, 2 * c + 1] = und[:, 1:] * proj[2] - proj[1]

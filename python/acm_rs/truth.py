@@ -197,9 +197,10 @@ def project(params: np.ndarray, points: np.ndarray) -> np.ndarray:
 
     Parameters
     ----------
-    params : array_like, shape (C, 15)
-        Per camera ``[rvec (3), tvec (3), fx, fy, cx, cy, k1, k2, p1, p2, k3]``, world to
-        camera ``x_cam = R(rvec) x + tvec`` (a :class:`acm_rs.CameraRig`'s ``get_params()``).
+    params : array_like, shape (C, 16) or (C, 15)
+        Per camera ``[rvec (3), tvec (3), fx, fy, cx, cy, k1, k2, p1, p2, k3, skew]``, world to
+        camera ``x_cam = R(rvec) x + tvec`` (a :class:`acm_rs.CameraRig`'s ``get_params()``);
+        15 columns: no skew. The skew is MATLAB's, ``u = fx x'' + skew y'' + cx``.
     points : array_like, shape (..., 3)
         World points.
 
@@ -208,7 +209,8 @@ def project(params: np.ndarray, points: np.ndarray) -> np.ndarray:
     numpy.ndarray, shape (C, ..., 2)
         Pixels; NaN for points at or behind a camera's plane.
     """
-    params = np.asarray(params, dtype=np.float64).reshape(-1, 15)
+    params = np.asarray(params, dtype=np.float64)
+    params = params.reshape(-1, 16 if params.shape[-1] == 16 else 15)
     pts = np.asarray(points, dtype=np.float64)
     shape = pts.shape[:-1]
     pts = pts.reshape(-1, 3)
@@ -221,8 +223,11 @@ def project(params: np.ndarray, points: np.ndarray) -> np.ndarray:
         r_2 = m[:, 0] ** 2 + m[:, 1] ** 2
         sum_term = 1.0 + k[0] * r_2 + k[1] * r_2**2 + k[4] * r_2**3
         xy2 = m[:, 0] * m[:, 1] * 2.0
-        u = p[8] + p[6] * (m[:, 0] * sum_term + k[2] * xy2 + k[3] * (r_2 + 2.0 * m[:, 0] ** 2))
-        v = p[9] + p[7] * (m[:, 1] * sum_term + k[2] * (r_2 + 2.0 * m[:, 1] ** 2) + k[3] * xy2)
+        xd = m[:, 0] * sum_term + k[2] * xy2 + k[3] * (r_2 + 2.0 * m[:, 0] ** 2)
+        yd = m[:, 1] * sum_term + k[2] * (r_2 + 2.0 * m[:, 1] ** 2) + k[3] * xy2
+        skew = p[15] if p.size == 16 else 0.0
+        u = p[8] + p[6] * xd + skew * yd
+        v = p[9] + p[7] * yd
         uv = np.stack([u, v], axis=-1)
         uv[~(m_cam[:, 2] > 0)] = np.nan
         out.append(uv.reshape(*shape, 2))

@@ -19,7 +19,7 @@ supplement sec. 4, Alg. 5-13) on each bundle and writes the smoothed posterior.
 
 Input bundle (NPZ; write it with acm_rs.tracking.write_bundle; see docs/tracking.md):
   parents (J,), rest_frames (B,3,3), bone_lengths (B,), marker_joints (M,),
-  marker_offsets (M,3), joint_limits (B,3,2) rad, cameras (C,15), normalization (4,),
+  marker_offsets (M,3), joint_limits (B,3,2) rad, cameras (C,16), normalization (4,),
   detections (C,T,M,2) px with NaN = missing, mu0 (n,); optional likelihood (C,T,M),
   pcutoff, max_iter, tol, ll_tol (log-likelihood stop, nats per measurement; NaN = Alg. 13
   with tol), gate (chi-square threshold; NaN = off), noise (start of V0, V_z; 2e-4),

@@ -15,8 +15,8 @@ pub(super) struct PyCalibration {
 
 #[pymethods]
 impl PyCalibration {
-    /// `board (P, 3)`, `corners (C, F, P, 2)` with NaN = not detected, `params0 (12 C + 6 F,)`,
-    /// `fixed (12 C + 6 F,)` bool.
+    /// `board (P, 3)`, `corners (C, F, P, 2)` with NaN = not detected, `params0 (13 C + 6 F,)`,
+    /// `fixed (13 C + 6 F,)` bool.
     #[new]
     fn new(
         board: Arr<'_>,

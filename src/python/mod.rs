@@ -120,12 +120,17 @@ fn rodrigues_jacobian<'py>(py: Python<'py>, r: Arr<'py>) -> PyResult<Out<'py>> {
     out(py, d, &[n, 3, 3, 3])
 }
 
+/// Cameras from a `(c, 16)` parameter array, or `(c, 15)` without skew.
 fn cameras_from(params: &Arr<'_>) -> PyResult<Vec<Camera>> {
-    let p = view(params, "camera params", &[None, Some(camera::N_PARAMS)])?;
-    Camera::many_from_params(p).map_err(to_py)
+    let width = match params.shape() {
+        [_, w] if *w == camera::N_PARAMS_NO_SKEW => camera::N_PARAMS_NO_SKEW,
+        _ => camera::N_PARAMS,
+    };
+    let p = view(params, "camera params", &[None, Some(width)])?;
+    Camera::many_from_rows(p, width).map_err(to_py)
 }
 
-/// Projects `(n, 3)` points into `(c, 15)` cameras → `(pixels (c, n, 2), in_front (c, n))`.
+/// Projects `(n, 3)` points into `(c, 16)` cameras → `(pixels (c, n, 2), in_front (c, n))`.
 #[pyfunction]
 fn project<'py>(
     py: Python<'py>,
@@ -148,7 +153,7 @@ fn project<'py>(
 }
 
 /// Projection with exact Jacobians → `(pixels (c, n, 2), d_point (c, n, 2, 3),
-/// d_params (c, n, 2, 15))`; NaN for points behind a camera.
+/// d_params (c, n, 2, 16))`; NaN for points behind a camera.
 #[pyfunction]
 fn project_jacobian<'py>(
     py: Python<'py>,
@@ -428,7 +433,7 @@ impl PySkeleton {
         ))
     }
 
-    /// Fused FK + projection: `t (N, 3)`, `r (N, B, 3)` into `(C, 15)` cameras →
+    /// Fused FK + projection: `t (N, 3)`, `r (N, B, 3)` into `(C, 16)` cameras →
     /// `(C, N, M, 2)` pixels.
     fn project_poses<'py>(
         &self,

@@ -55,7 +55,7 @@ fn params_from(p: &ParamArrays<'_>, n: usize, n_x: usize) -> PyResult<Params> {
 }
 
 /// The skeleton emission (Alg. 4 ∘ Alg. 10) from the binding's arguments: camera parameters
-/// `(C, 15)`, joint limits `lower, upper (n_bones, 3)`, normalisation `(c_t, c_r, c_1, c_2)`.
+/// `(C, 16)` (or `(C, 15)` without skew), joint limits `lower, upper (n_bones, 3)`, normalisation `(c_t, c_r, c_1, c_2)`.
 fn emission_from(
     skeleton: &PySkeleton,
     params: &Arr<'_>,

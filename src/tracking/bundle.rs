@@ -133,7 +133,12 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
     let nm = mj.data.len();
     let offsets = shaped(m, "marker_offsets", &[Some(nm), Some(3)], what)?;
     let limits = shaped(m, "joint_limits", &[Some(nb), Some(3), Some(2)], what)?;
-    let cams = shaped(m, "cameras", &[None, Some(crate::camera::N_PARAMS)], what)?;
+    // (C, 16) cameras, or (C, 15) without skew (bundles written before skew existed)
+    let width = match get(m, "cameras", what)?.shape.as_slice() {
+        [_, w] if *w == crate::camera::N_PARAMS_NO_SKEW => crate::camera::N_PARAMS_NO_SKEW,
+        _ => crate::camera::N_PARAMS,
+    };
+    let cams = shaped(m, "cameras", &[None, Some(width)], what)?;
     let normv = shaped(m, "normalization", &[Some(4)], what)?;
     let nc = cams.shape[0];
     let det = shaped(m, "detections", &[Some(nc), None, Some(nm), Some(2)], what)?;
@@ -172,7 +177,7 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
             skeleton.with_links(&flat, Some(&ord))?
         }
     };
-    let cameras = Camera::many_from_params(&cams.data)?;
+    let cameras = Camera::many_from_rows(&cams.data, width)?;
     let norm = Normalization {
         translation: normv.data[0],
         rotation: normv.data[1],

@@ -3,13 +3,15 @@
 Board detection with OpenCV (:mod:`.detection`, :class:`BoardSpec`), initialisation without
 guesses (:mod:`.initialise`), refinement of eq. 7 with scipy's trust-region-reflective solver
 on residuals and exact sparse Jacobians from Rust (:func:`calibrate`), a QC report
-(:class:`CalibrationResult`), anipose ``calibration.toml`` output and ACM
-``multicalibration.npy`` import (:mod:`.acm`). See ``docs/calibration.md``.
+(:class:`CalibrationResult`), anipose ``calibration.toml`` output, ACM
+``multicalibration.npy`` import (:mod:`.acm`) and Label3D / DANNCE ``.mat`` import
+(:mod:`.label3d`). See ``docs/calibration.md``.
 """
 
 from .acm import load_acm_calibration, save_acm_calibration
 from .board import BoardSpec
 from .detection import Detections, detect, detect_board
+from .label3d import read_label3d_calibration
 from .result import CalibrationResult
 from .solve import CAMERA_PARAMS, calibrate
 from .world import frame_from_points, transform_rig, triangulate
@@ -24,6 +26,7 @@ __all__ = [
     "detect_board",
     "frame_from_points",
     "load_acm_calibration",
+    "read_label3d_calibration",
     "save_acm_calibration",
     "transform_rig",
     "triangulate",

@@ -100,6 +100,12 @@ def load_acm_calibration(
 def save_acm_calibration(rig: CameraRig, path: str | Path) -> Path:
     """Write a rig as an ACM ``multicalibration.npy`` (pickled dict, atomically)."""
     p = rig.get_params()
+    if np.any(p[:, 15] != 0):
+        skewed = [c.name for c in rig if c.skew != 0]
+        raise ValueError(
+            f"cameras {skewed} have a skew, which ACM's multicalibration.npy (A_fit = fx, cx, "
+            "fy, cy) cannot hold; save the rig as calibration.toml instead (CameraRig.save)"
+        )
     d = {
         "nCameras": len(rig),
         "A_fit": np.stack([p[:, 6], p[:, 8], p[:, 7], p[:, 9]], axis=1),

@@ -22,18 +22,21 @@ from ..rotation import rodrigues
 from .initialise import initialise
 from .result import CalibrationResult
 
-#: Order of the 12 per-camera parameters of the refinement.
+#: Order of the 13 per-camera parameters of the refinement (``skew``: MATLAB's skew in px,
+#: held at its initial value unless ``calibrate(fix_skew=False)``).
 CAMERA_PARAMS: tuple[str, ...] = (
-    "fx", "fy", "cx", "cy", "k1", "k2", "rx", "ry", "rz", "tx", "ty", "tz",
+    "fx", "fy", "cx", "cy", "k1", "k2", "rx", "ry", "rz", "tx", "ty", "tz", "skew",
 )  # fmt: skip
+_N_CAM = len(CAMERA_PARAMS)
+_SKEW = CAMERA_PARAMS.index("skew")
 PARAM_GROUPS: dict[str, tuple[str, ...]] = {
-    "intrinsics": CAMERA_PARAMS[:6],
+    "intrinsics": CAMERA_PARAMS[:6] + ("skew",),
     "focal": ("fx", "fy"),
     "principal_point": ("cx", "cy"),
     "distortion": ("k1", "k2"),
     "r": ("rx", "ry", "rz"),
     "t": ("tx", "ty", "tz"),
-    "pose": CAMERA_PARAMS[6:],
+    "pose": CAMERA_PARAMS[6:12],
 }
 LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
 
@@ -41,7 +44,7 @@ LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")
 def _names_mask(names: str | Sequence[str]) -> np.ndarray:
     if isinstance(names, str):
         names = [names]
-    mask = np.zeros(12, bool)
+    mask = np.zeros(_N_CAM, bool)
     for n in names:
         group = PARAM_GROUPS.get(n, (n,))
         for g in group:
@@ -55,15 +58,20 @@ def _names_mask(names: str | Sequence[str]) -> np.ndarray:
 
 
 def fixed_mask(fix, n_cams: int, names: list[str]) -> np.ndarray:
-    """Parse ``fix`` into an ``(n_cams, 12)`` boolean mask (see :func:`calibrate`)."""
+    """Parse ``fix`` into an ``(n_cams, 13)`` boolean mask (see :func:`calibrate`); a boolean
+    ``(n_cams, 12)`` mask (without the skew column) leaves the skew to ``fix_skew``."""
     if fix is None:
-        return np.zeros((n_cams, 12), bool)
+        return np.zeros((n_cams, _N_CAM), bool)
     if isinstance(fix, np.ndarray) and fix.dtype == bool:
-        if fix.shape != (n_cams, 12):
-            raise ValueError(f"a boolean fix mask must have shape ({n_cams}, 12), got {fix.shape}")
+        if fix.shape == (n_cams, _N_CAM - 1):
+            return np.pad(fix, ((0, 0), (0, 1)))
+        if fix.shape != (n_cams, _N_CAM):
+            raise ValueError(
+                f"a boolean fix mask must have shape ({n_cams}, {_N_CAM}), got {fix.shape}"
+            )
         return fix.copy()
     if isinstance(fix, Mapping):
-        out = np.zeros((n_cams, 12), bool)
+        out = np.zeros((n_cams, _N_CAM), bool)
         for key, val in fix.items():
             if isinstance(key, str):
                 if key not in names:
@@ -151,6 +159,7 @@ def calibrate(
     f_scale: float = 1.0,
     intrinsics: CameraRig | Sequence[Camera | None] | None = None,
     max_nfev: int | None = None,
+    fix_skew: bool = True,
 ) -> CalibrationResult:
     """Calibrate a multi-camera rig from board detections (ACM supp. eq. 7).
 
@@ -168,20 +177,26 @@ def calibrate(
         Camera defining the world frame (its ``r, t`` are zero and fixed).
     loss : {"linear", "soft_l1", "huber", "cauchy", "arctan"}
         Robust loss of ``least_squares``; ``f_scale`` (px) is the inlier scale.
-    fix : None, sequence of str, dict or bool array (n_cams, 12), optional
+    fix : None, sequence of str, dict or bool array (n_cams, 13), optional
         Parameters held at their initial values: names from ``fx, fy, cx, cy, k1, k2, rx, ry,
-        rz, tx, ty, tz`` or groups ``intrinsics``, ``focal``, ``principal_point``,
-        ``distortion``, ``r``, ``t``, ``pose``; a sequence applies to every camera, a dict
-        maps camera index or name to names.
+        rz, tx, ty, tz, skew`` or groups ``intrinsics`` (with ``skew``), ``focal``,
+        ``principal_point``, ``distortion``, ``r``, ``t``, ``pose``; a sequence applies to
+        every camera, a dict maps camera index or name to names.
     camera_names : sequence of str, optional
         Default ``cam_0, cam_1, ...``.
     f_scale : float
         Soft margin (px) of the robust loss.
     intrinsics : CameraRig or sequence of (Camera or None), optional
-        Known intrinsics per camera (matrix and ``k1, k2``; ``p1 = p2 = k3 = 0`` required),
-        used instead of OpenCV's estimate; combine with ``fix="intrinsics"`` to keep them.
+        Known intrinsics per camera (matrix with its skew, and ``k1, k2``; ``p1 = p2 = k3 = 0``
+        required), used instead of OpenCV's estimate; combine with ``fix="intrinsics"`` to
+        keep them.
     max_nfev : int, optional
         Most function evaluations of the refinement (default: scipy's).
+    fix_skew : bool
+        Hold every camera's skew at its initial value (0, or the known intrinsics' skew), as
+        OpenCV's calibration does (default). ``False`` estimates it (MATLAB's
+        ``EstimateSkew``) unless ``fix`` names it; a skew is rarely identifiable from board
+        views, so estimate it only with many views tilted in every direction.
 
     Returns
     -------
@@ -211,8 +226,15 @@ def calibrate(
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     if not f_scale > 0:
         raise ValueError(f"f_scale must be > 0, got {f_scale}")
-    fixed = fixed_mask(fix, n_cams, names)
+    asked = fixed_mask(fix, n_cams, names)  # what the caller fixed (reported in info["fixed"])
+    fixed = asked.copy()
+    if fix_skew:
+        fixed[:, _SKEW] = True
     known = _known_intrinsics(intrinsics, n_cams)
+    skew0 = np.zeros(n_cams)
+    for i, k in enumerate(known or []):
+        if k is not None:  # the skew starts the refinement; OpenCV's initialisation has none
+            skew0[i], k[0][0, 1] = k[0][0, 1], 0.0
 
     t0 = time.perf_counter()
     init = initialise(c, b, sizes, ref, names, known)
@@ -234,7 +256,9 @@ def calibrate(
     centroid = b.mean(axis=0)
     poses0 = np.where(used[:, None], init.poses, 0.0)
     poses0[:, 3:] += np.einsum("fij,j->fi", rodrigues(poses0[:, :3]), centroid)
-    params0 = np.concatenate([init.cameras.ravel(), poses0.ravel()])
+    # initialise gives (n_cams, 12) cameras; the refinement adds the skew (src/calibration.rs)
+    cams0 = np.concatenate([init.cameras, skew0[:, None]], axis=1)
+    params0 = np.concatenate([cams0.ravel(), poses0.ravel()])
     mask = np.concatenate([fixed.ravel(), np.zeros(6 * n_frames, bool)])
     prob = _native.NativeCalibration(b - centroid, c_used, ref, params0, mask)
     shape = (2 * prob.n_observations, prob.n_free)
@@ -248,7 +272,7 @@ def calibrate(
     r0 = prob.residuals(x0)[0]
     # Solve in z with x = M z (a fixed invertible linear change of variables, see
     # schur_preconditioner): the exact Jacobian in z is J(x) M.
-    m = schur_preconditioner(jac_x(x0), int(np.sum(free < 12 * n_cams)), free)
+    m = schur_preconditioner(jac_x(x0), int(np.sum(free < _N_CAM * n_cams)), free, n_cams)
     z0 = spsolve(m.tocsc(), x0)
 
     def fun(z: np.ndarray) -> np.ndarray:
@@ -282,20 +306,20 @@ def calibrate(
     residuals = np.full((n_cams * n_frames * n_points, 2), np.nan)
     residuals[prob.observation_index] = res_flat.reshape(-1, 2)
     residuals = residuals.reshape(n_cams, n_frames, n_points, 2)
-    cams12 = full[: 12 * n_cams].reshape(n_cams, 12)
-    poses = full[12 * n_cams :].reshape(n_frames, 6).copy()
+    cams13 = full[: _N_CAM * n_cams].reshape(n_cams, _N_CAM)
+    poses = full[_N_CAM * n_cams :].reshape(n_frames, 6).copy()
     poses[:, 3:] -= np.einsum("fij,j->fi", rodrigues(poses[:, :3]), centroid)
     poses[~used] = np.nan
     rig = CameraRig(
         Camera(
-            [[p[0], 0.0, p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]],
+            [[p[0], p[_SKEW], p[2]], [0.0, p[1], p[3]], [0.0, 0.0, 1.0]],
             [p[4], p[5]],
             p[6:9],
             p[9:12],
             size=(int(sizes[i, 0]), int(sizes[i, 1])),
             name=names[i],
         )
-        for i, p in enumerate(cams12)
+        for i, p in enumerate(cams13)
     )
     return CalibrationResult(
         rig=rig,
@@ -324,10 +348,11 @@ def calibrate(
                 for a, c_, n in init.tree
             ],
             "fixed": {
-                names[i]: [CAMERA_PARAMS[k] for k in np.flatnonzero(fixed[i])]
+                names[i]: [CAMERA_PARAMS[k] for k in np.flatnonzero(asked[i])]
                 for i in range(n_cams)
-                if fixed[i].any()
+                if asked[i].any()
             },
+            "fix_skew": bool(fix_skew),
         },
     )
 
@@ -343,7 +368,7 @@ def _sym_inverse_sqrt_factor(g: np.ndarray) -> np.ndarray:
         return v / np.sqrt(np.maximum(w, 1e-12 * max(w.max(), 1e-300)))
 
 
-def schur_preconditioner(jac0, n_cam_cols: int, free: np.ndarray):
+def schur_preconditioner(jac0, n_cam_cols: int, free: np.ndarray, n_cams: int):
     """Linear change of variables ``x = M z`` that whitens the Gauss-Newton matrix at x0.
 
     The columns are the camera parameters (first ``n_cam_cols``) and the board-view poses
@@ -363,6 +388,8 @@ def schur_preconditioner(jac0, n_cam_cols: int, free: np.ndarray):
     n_cam_cols : int
     free : numpy.ndarray, shape (n_free,)
         Full-layout indices of the free parameters (ascending).
+    n_cams : int
+        Number of cameras (the board views' block starts at ``13 n_cams``).
 
     Returns
     -------
@@ -385,7 +412,7 @@ def schur_preconditioner(jac0, n_cam_cols: int, free: np.ndarray):
 
     s = g[:nc, :nc].toarray()
     g_pc = g[nc:, :nc].toarray()
-    view = free[nc:] // 6  # the pose block of each column (any offset works for grouping)
+    view = (free[nc:] - _N_CAM * n_cams) // 6  # the pose block of each column
     starts = np.flatnonzero(np.r_[True, view[1:] != view[:-1]])
     ends = np.r_[starts[1:], len(view)]
     k_rows = []
@@ -401,7 +428,7 @@ def schur_preconditioner(jac0, n_cam_cols: int, free: np.ndarray):
         # Whiten each camera's diagonal block of S (not all of S: a dense factor would mix
         # cameras and make every Jacobian row dense); pose rows of M's camera columns: K B_c.
         b_c = np.zeros((nc, nc))
-        cam = free[:nc] // 12
+        cam = free[:nc] // _N_CAM
         for c in np.unique(cam):
             idx = np.flatnonzero(cam == c)
             b_c[np.ix_(idx, idx)] = _sym_inverse_sqrt_factor(s[np.ix_(idx, idx)])

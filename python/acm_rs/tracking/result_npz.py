@@ -129,7 +129,7 @@ def to_npz(
     ``markers`` (T, M, 3), ``markers_var`` (T, M, 3) (posterior variance, if
     ``marker_variance``), ``t`` (T, 3), ``r`` (T, n_bones, 3) rad, ``state_mean`` (T, n),
     ``state_cov`` (T, n, n) if present, ``detections`` (n_cams, T, M, 2) px, ``frames`` (T,),
-    ``joint_names``, ``marker_names``, ``camera_names``, ``camera_params`` (n_cams, 15,
+    ``joint_names``, ``marker_names``, ``camera_names``, ``camera_params`` (n_cams, 16,
     :data:`acm_rs.PARAM_NAMES` order), ``em_delta``, ``em_seconds``; text: ``units``,
     ``skeleton_toml`` (load with ``Skeleton.from_dict(tomllib.loads(...))``),
     ``calibration_toml`` (anipose), ``info_json``; ``format`` and ``version``; the arrays of
