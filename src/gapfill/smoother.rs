@@ -32,9 +32,9 @@
 //!   RTS smoother).
 
 use super::linalg::{
-    add_outer, chol_solve_packed, cholesky_in_place, cholesky_lower, close, dot,
+    add_outer, chol_solve_in_place, cholesky_in_place, cholesky_lower, close, dot,
     inverse_from_cholesky, pack_lower, packed_col, packed_len, spd_inverse_lower,
-    sym_matvec_packed_add, symmetrize, unpack_lower, unpack_symmetric,
+    sym_matvec_packed_add, symmetrize, unpack_symmetric,
 };
 use crate::error::{AcmError, Result};
 use nalgebra::{DMatrix, DVector};
@@ -238,19 +238,22 @@ impl White {
     }
 }
 
-/// A memoised filter state (whitened coordinates). Its two matrices are stored packed (lower
-/// triangles, column by column, `packed_len(k)` values each) at `off` in arena `arena`:
-/// the lower Cholesky factor of the information `Λ_t = P_t⁻¹` (A.4), then
-/// `M_t = (I + Λ_t)⁻¹`, the RTS gain `C_t` (A.6), with `I − M_t = P̂_{t+1}⁻¹` (A.2).
-/// One contiguous arena per chain halves the memory of full matrices and avoids an allocation
-/// per state (25,000 states of d̂ = 41 take 340 MB instead of 680 MB).
+/// A memoised filter state (whitened coordinates). Its matrix `M_t = (I + Λ_t)⁻¹`, the RTS
+/// gain `C_t` (A.6), with `I − M_t = P̂_{t+1}⁻¹` (A.2), is stored packed (lower triangle,
+/// column by column, `packed_len(k)` values) at `off` in arena `arena`. The information
+/// `Λ_t = P_t⁻¹` (A.4) is not stored: the means need only `M_t` (information filter, see
+/// [`smooth`]), and the few explicit filter covariances are rebuilt from the predecessor and
+/// the pattern ([`state_cov`]). One contiguous arena per chain avoids an allocation per state
+/// (25,000 states of d̂ = 41 take 170 MB; full matrices of `Λ_t` and `M_t` took 680 MB).
 #[derive(Debug, Clone, Copy)]
 struct FState {
     /// The predecessor whose `P̂⁻¹ = I − M_pred` (or the prior) entered `Λ_t` (A.2, A.4).
     pred: u32,
-    /// Arena holding the matrices.
+    /// The missing-value pattern of the state's frames (`G_t` of A.4).
+    pat: u32,
+    /// Arena holding the matrix.
     arena: u32,
-    /// Offset of the Cholesky factor in the arena (`M_t` follows).
+    /// Offset of `M_t` in the arena.
     off: usize,
     /// Upper bound on `‖P_t‖₂`.
     pnorm: f64,
@@ -271,15 +274,10 @@ impl Arenas {
             arenas: vec![Vec::new()],
         }
     }
-    /// Packed lower Cholesky factor of `Λ_t`.
-    #[inline]
-    fn chol(&self, st: &FState) -> &[f64] {
-        &self.arenas[st.arena as usize][st.off..st.off + self.tri]
-    }
     /// Packed lower triangle of `M_t`.
     #[inline]
     fn m(&self, st: &FState) -> &[f64] {
-        &self.arenas[st.arena as usize][st.off + self.tri..st.off + 2 * self.tri]
+        &self.arenas[st.arena as usize][st.off..st.off + self.tri]
     }
 }
 
@@ -299,6 +297,8 @@ pub struct Smoothed {
     /// Their matrices.
     mats: Arenas,
     white: White,
+    /// Missing coordinates per pattern (rebuilds `Λ_t` of a state, [`state_cov`]).
+    missing: Vec<Vec<u32>>,
     /// The memo tolerance of the pass (also the stitching tolerance of [`cov_sums`]).
     tol: f64,
 }
@@ -318,7 +318,7 @@ impl Smoothed {
     /// Filter covariance `P_t = L Λ_t⁻¹ Lᵀ` of frame `t` (original coordinates).
     pub fn filter_cov(&self, t: usize) -> DMatrix<f64> {
         let st = &self.states[self.state_of_frame[t] as usize];
-        let p = state_cov(&self.mats, st, self.white.k);
+        let p = state_cov(&self.white, &self.missing, &self.states, &self.mats, st);
         let l = &self.white.l;
         l * p * l.transpose()
     }
@@ -389,71 +389,85 @@ pub fn smooth(
             }
         }
     });
-    let mut mf = vec![0.0; t_len * k]; // filtered means (whitened)
-    let mut g = vec![0.0; k];
-    let gf = w.g_full.as_slice();
-
-    for t in 0..t_len {
-        let pat = pats.of_frame[t];
-        let sid = state_of_frame[t];
-        // Mean (A.3, A.5): m̂_t = m_{t−1} (random walk),
-        // m_t = m̂_t + P_t Ĥ_tᵀ (z_t − Ĥ_t m̂_t − H_t m̄) / r = m̂_t + P_t (b_t − G_t m̂_t) / r.
-        let (done, rest) = mf.split_at_mut(t * k);
-        let m_hat: &[f64] = if t == 0 {
-            w.m0.as_slice()
+    // Means in information form (A.2-A.7 with Q' = I), which need only M_t: with the
+    // information vector η_t = Λ_t m_t,
+    //   forward   η_t = P̂_t⁻¹ m̂_t + b_t / r = M_{t−1} η_{t−1} + b_t / r
+    //             (P̂_t⁻¹ m̂_t = (I − M_{t−1}) P_{t−1} η_{t−1} and (I − M) Λ⁻¹ = (I + Λ)⁻¹ = M);
+    //   backward  m̃_t = m_t + M_t (m̃_{t+1} − m_t) = (I − M_t) P_t η_t + M_t m̃_{t+1}
+    //             = M_t (η_t + m̃_{t+1}),   m̃_{T−1} = P_{T−1} η_{T−1}.
+    // Only the last frame solves with Λ (rebuilt from its predecessor). Before: a Cholesky
+    // factor of Λ_t per state and a solve plus G_t m̂_t per frame.
+    // The shortcut P̂_t⁻¹ m̂_t = M_{t−1} η_{t−1} holds when frame t's state was computed from
+    // frame t−1's. A merged state (memo test) or the first state adopted from a parallel chunk
+    // was computed from another, nearby predecessor: there m_{t−1} = Λ_{t−1}⁻¹ η_{t−1} is
+    // formed explicitly and P̂_t⁻¹ is the state's own predecessor's, as in the covariance form,
+    // so an approximate state perturbs the means by its covariance error times the innovation
+    // (not times the mean). The backward step uses only M_t and Λ_t of one state: always exact.
+    let pred_info_add = |pred: u32, m: &[f64], out: &mut [f64]| {
+        if pred == PRIOR {
+            sym_matvec_packed_add(&w.lam0_packed, k, m, out);
         } else {
-            &done[(t - 1) * k..]
-        };
-        let m_t = &mut rest[..k];
-        m_t.copy_from_slice(m_hat);
-        let miss = &pats.missing[pat as usize];
-        if miss.len() < d {
-            // g = G_t m̂_t: G_full m̂ − Σ_{missing} v_i (v_iᵀ m̂), or Σ_{present}.
-            g.iter_mut().for_each(|v| *v = 0.0);
-            if miss.len() * 2 <= d {
-                for (col, &mb) in gf.chunks_exact(k).zip(m_hat) {
-                    for (o, c) in g.iter_mut().zip(col) {
-                        *o += c * mb;
-                    }
-                }
-                for &i in miss {
-                    let v = w.row(i as usize);
-                    let p = dot(v, m_hat);
-                    for (o, vc) in g.iter_mut().zip(v) {
-                        *o -= p * vc;
-                    }
-                }
+            // (I − M_pred) m
+            let mut mm = vec![0.0; k];
+            sym_matvec_packed_add(mats.m(&states[pred as usize]), k, m, &mut mm);
+            for ((o, a), b) in out.iter_mut().zip(m).zip(&mm) {
+                *o += a - b;
+            }
+        }
+    };
+    let mut chols: HashMap<u32, DMatrix<f64>> = HashMap::new();
+    let mut eta = bz; // η_t, filled in place over the data terms b_t
+    for t in 0..t_len {
+        let (done, rest) = eta.split_at_mut(t * k);
+        let e_t = &mut rest[..k];
+        e_t.iter_mut().for_each(|v| *v *= w.inv_r);
+        let pred = states[state_of_frame[t] as usize].pred;
+        if t == 0 {
+            pred_info_add(pred, w.m0.as_slice(), e_t);
+        } else {
+            let sp = state_of_frame[t - 1];
+            let eta_prev = &done[(t - 1) * k..];
+            if pred == sp {
+                sym_matvec_packed_add(mats.m(&states[sp as usize]), k, eta_prev, e_t);
             } else {
-                let row = &x[t * d..(t + 1) * d];
-                for (i, z) in row.iter().enumerate() {
-                    if !z.is_nan() {
-                        let v = w.row(i);
-                        let p = dot(v, m_hat);
-                        for (o, vc) in g.iter_mut().zip(v) {
-                            *o += p * vc;
-                        }
-                    }
-                }
-            }
-            for (o, b) in g.iter_mut().zip(&bz[t * k..(t + 1) * k]) {
-                *o = (b - *o) * w.inv_r;
-            }
-            chol_solve_packed(mats.chol(&states[sid as usize]), k, &mut g);
-            for (a, b) in m_t.iter_mut().zip(&g) {
-                *a += b;
+                let chol = match chols.entry(sp) {
+                    std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+                    std::collections::hash_map::Entry::Vacant(e) => e.insert(state_chol(
+                        &w,
+                        &pats.missing,
+                        &states,
+                        &mats,
+                        &states[sp as usize],
+                    )?),
+                };
+                let mut m_prev = eta_prev.to_vec();
+                chol_solve_in_place(chol, &mut m_prev);
+                pred_info_add(pred, &m_prev, e_t);
             }
         }
     }
-
-    // Backward pass: m̃_t = m_t + C_t (m̃_{t+1} − m̂_{t+1}), m̂_{t+1} = m_t, C_t = M_t (A.7).
-    let mut ms = mf.clone();
-    let mut diff = vec![0.0; k];
+    let mut ms = vec![0.0; t_len * k];
+    if t_len > 0 {
+        let last = t_len - 1;
+        let chol = state_chol(
+            &w,
+            &pats.missing,
+            &states,
+            &mats,
+            &states[state_of_frame[last] as usize],
+        )?;
+        let m_last = &mut ms[last * k..];
+        m_last.copy_from_slice(&eta[last * k..]);
+        chol_solve_in_place(&chol, m_last);
+    }
+    let mut sum = vec![0.0; k];
     for t in (0..t_len.saturating_sub(1)).rev() {
         let c = mats.m(&states[state_of_frame[t] as usize]);
-        for a in 0..k {
-            diff[a] = ms[(t + 1) * k + a] - mf[t * k + a];
+        let (head, tail) = ms.split_at_mut((t + 1) * k);
+        for ((s, e), m) in sum.iter_mut().zip(&eta[t * k..(t + 1) * k]).zip(&tail[..k]) {
+            *s = e + m;
         }
-        sym_matvec_packed_add(c, k, &diff, &mut ms[t * k..(t + 1) * k]);
+        sym_matvec_packed_add(c, k, &sum, &mut head[t * k..]);
     }
     // Back to the original coordinates: m̃ = L m̃'.
     let mut m_orig = vec![0.0; t_len * k];
@@ -477,6 +491,7 @@ pub fn smooth(
         states,
         mats,
         white: w,
+        missing: pats.missing.clone(),
         tol: memo_tol,
     };
     if want_cov && t_len > 0 {
@@ -504,8 +519,6 @@ struct Chain {
 
 /// Work matrices of one transition (`k × k` each), reused across states.
 struct Scratch {
-    info: DMatrix<f64>,
-    chol: DMatrix<f64>,
     ipi: DMatrix<f64>,
     w: Vec<f64>,
     t: Vec<f64>,
@@ -522,8 +535,6 @@ impl Chain {
             trans: HashMap::new(),
             sof: Vec::new(),
             scratch: Scratch {
-                info: z(),
-                chol: z(),
                 ipi: z(),
                 w: vec![0.0; k * k],
                 t: vec![0.0; k * k],
@@ -553,7 +564,7 @@ impl Chain {
         let mut prev = self.sof.last().copied().unwrap_or(PRIOR);
         // At most one new state per frame: reserve once (address space only; pages are
         // touched when written) instead of growing by doubling (copies and refaults).
-        let need = frames.len() * 2 * self.mats.tri;
+        let need = frames.len() * self.mats.tri;
         let arena = &mut self.mats.arenas[0];
         arena.reserve(need.saturating_sub(arena.capacity() - arena.len()));
         self.sof.reserve(frames.len());
@@ -565,12 +576,72 @@ impl Chain {
     }
 }
 
-/// Explicit `P = Λ⁻¹` of a state.
-fn state_cov(mats: &Arenas, st: &FState, k: usize) -> DMatrix<f64> {
-    let l = unpack_lower(mats.chol(st), k);
-    let (mut w, mut t) = (vec![0.0; k * k], vec![0.0; k * k]);
+/// `info ← Λ_t = P̂_t⁻¹ + G_t / r` (A.2, A.4; lower triangle and the diagonal; the strict
+/// upper triangle holds `G_t / r` only) of the state reached from `pred` with pattern `pat`.
+fn info_into(
+    w: &White,
+    missing: &[Vec<u32>],
+    states: &[FState],
+    mats: &Arenas,
+    pred: u32,
+    pat: u32,
+    info: &mut DMatrix<f64>,
+) {
+    let k = w.k;
+    let miss = &missing[pat as usize];
+    if miss.len() == w.d {
+        info.fill(0.0);
+    } else {
+        w.info_gain_into(miss, info);
+    }
+    let (add, sign, ident) = if pred == PRIOR {
+        (w.lam0_packed.as_slice(), 1.0, 0.0)
+    } else {
+        (mats.m(&states[pred as usize]), -1.0, 1.0)
+    };
+    let info = info.as_mut_slice();
+    for j in 0..k {
+        let col = &add[packed_col(k, j)..packed_col(k, j + 1)];
+        for (o, a) in info[j * k + j..(j + 1) * k].iter_mut().zip(col) {
+            *o += sign * a;
+        }
+        info[j * k + j] += ident;
+    }
+}
+
+/// Lower Cholesky factor of the information `Λ_t` of a state (rebuilt from its predecessor).
+fn state_chol(
+    w: &White,
+    missing: &[Vec<u32>],
+    states: &[FState],
+    mats: &Arenas,
+    st: &FState,
+) -> Result<DMatrix<f64>> {
+    let mut l = DMatrix::zeros(w.k, w.k);
+    info_into(w, missing, states, mats, st.pred, st.pat, &mut l);
+    if !cholesky_in_place(l.as_mut_slice(), w.k) {
+        return Err(AcmError::Numerical(
+            "the filter information matrix is not positive definite".into(),
+        ));
+    }
+    Ok(l)
+}
+
+/// Explicit `P = Λ⁻¹` of a state (NaN if `Λ` is not numerically positive definite).
+fn state_cov(
+    w: &White,
+    missing: &[Vec<u32>],
+    states: &[FState],
+    mats: &Arenas,
+    st: &FState,
+) -> DMatrix<f64> {
+    let k = w.k;
+    let Ok(l) = state_chol(w, missing, states, mats, st) else {
+        return DMatrix::from_element(k, k, f64::NAN);
+    };
+    let (mut ws, mut t) = (vec![0.0; k * k], vec![0.0; k * k]);
     let mut p = DMatrix::zeros(k, k);
-    inverse_from_cholesky(l.as_slice(), k, &mut w, &mut t, p.as_mut_slice());
+    inverse_from_cholesky(l.as_slice(), k, &mut ws, &mut t, p.as_mut_slice());
     p
 }
 
@@ -627,8 +698,20 @@ fn filter_states(w: &White, pats: &Patterns, tol: f64) -> Result<(Vec<FState>, A
                 let lsid = lc.sof[t - start];
                 if (t - a) % TEST_EVERY == 0
                     && close(
-                        &state_cov(&g.mats, &g.states[sid as usize], w.k),
-                        &state_cov(&lc.mats, &lc.states[lsid as usize], w.k),
+                        &state_cov(
+                            w,
+                            &pats.missing,
+                            &g.states,
+                            &g.mats,
+                            &g.states[sid as usize],
+                        ),
+                        &state_cov(
+                            w,
+                            &pats.missing,
+                            &lc.states,
+                            &lc.mats,
+                            &lc.states[lsid as usize],
+                        ),
                         tol,
                     )
                 {
@@ -687,32 +770,17 @@ impl Chain {
         }
         let sc = &mut self.scratch;
         // Λ_t = P̂_t⁻¹ + G_t / r, P̂_t⁻¹ = I − M_{t−1} (lower triangle; Cholesky reads no more).
-        if pats.all_missing(pat, w.d) {
-            sc.info.fill(0.0);
-        } else {
-            w.info_gain_into(&pats.missing[pat as usize], &mut sc.info);
-        }
-        let (add, sign, ident) = if prev == PRIOR {
-            (w.lam0_packed.as_slice(), 1.0, 0.0)
-        } else {
-            (self.mats.m(&self.states[prev as usize]), -1.0, 1.0)
-        };
-        let info = sc.info.as_mut_slice();
-        for j in 0..k {
-            let col = &add[packed_col(k, j)..packed_col(k, j + 1)];
-            for (o, a) in info[j * k + j..(j + 1) * k].iter_mut().zip(col) {
-                *o += sign * a;
-            }
-            info[j * k + j] += ident;
-        }
-        sc.chol.copy_from(&sc.info);
-        if !cholesky_in_place(sc.chol.as_mut_slice(), k) {
-            return Err(AcmError::Numerical(
-                "the filter information matrix is not positive definite".into(),
-            ));
-        }
+        // Λ_t itself is not factored: the means need only M_t (see `smooth`).
+        info_into(
+            w,
+            &pats.missing,
+            &self.states,
+            &self.mats,
+            prev,
+            pat,
+            &mut sc.ipi,
+        );
         // M_t = (I + Λ_t)⁻¹.
-        sc.ipi.copy_from(&sc.info);
         for c in 0..k {
             sc.ipi[(c, c)] += 1.0;
         }
@@ -734,11 +802,11 @@ impl Chain {
         let pnorm = if tol > 0.0 { p_norm_bound(&sc.m) } else { 0.0 };
         let arena = &mut self.mats.arenas[0];
         let off = arena.len();
-        pack_lower(sc.chol.as_slice(), k, arena);
         pack_lower(sc.m.as_slice(), k, arena);
         let id = self.states.len() as u32;
         self.states.push(FState {
             pred: prev,
+            pat,
             arena: 0,
             off,
             pnorm,
@@ -776,7 +844,7 @@ fn smoothed_covariances(sm: &mut Smoothed, tol: f64) -> Result<()> {
     let mut memo: HashMap<(u32, u32), u32> = HashMap::new();
     // P̃_T = P_T = Λ_T⁻¹.
     let last = &states[sof[t_len - 1] as usize];
-    covs.push(state_cov(mats, last, k));
+    covs.push(state_cov(&sm.white, &sm.missing, states, mats, last));
     for t in (0..t_len.saturating_sub(1)).rev() {
         let s = sof[t];
         let next = of_frame[t + 1];
@@ -896,7 +964,10 @@ fn cov_sums(sm: &Smoothed, pats: &Patterns) -> Result<CovSums> {
             (bound(c + 1) + BWD_BURN_IN).min(t_len - 1)
         }
     };
-    let start_cov = |t: usize| state_cov(&sm.mats, &sm.states[sm.state_of_frame[t] as usize], k);
+    let start_cov = |t: usize| {
+        let st = &sm.states[sm.state_of_frame[t] as usize];
+        state_cov(&sm.white, &sm.missing, &sm.states, &sm.mats, st)
+    };
     let mut parts: Vec<Chunk> = (0..n)
         .into_par_iter()
         .map(|c| {
