@@ -40,12 +40,18 @@ def _edit(path, old, new):
 @pytest.mark.parametrize(
     "old, new, match",
     [
-        ('pcutoff = "auto"', "pcutof = 0.9",
-         r"unknown key tracking.pcutof; did you mean 'pcutoff'\?"),
+        (
+            'pcutoff = "auto"',
+            "pcutof = 0.9",
+            r"unknown key tracking.pcutof; did you mean 'pcutoff'\?",
+        ),
         ("[em]", "[emm]", r"unknown section \[emm\]; did you mean 'em'\?"),
         ("max_iter = 100", "max_iter = 1.5", r"em.max_iter must be an integer, got float 1.5"),
-        ('pcutoff = "auto"', 'pcutoff = "high"',
-         r"tracking.pcutoff = 'high' is invalid: expected a likelihood in \[0, 1\] or \"auto\""),
+        (
+            'pcutoff = "auto"',
+            'pcutoff = "high"',
+            r"tracking.pcutoff = 'high' is invalid: expected a likelihood in \[0, 1\] or \"auto\"",
+        ),
         ('pcutoff = "auto"', "pcutoff = true", r"tracking.pcutoff must be"),
         ("legacy_pattern = false", "legacy_pattern = 0", r"legacy_pattern must be true/false"),
         ("max_iter = 100", "max_iter = true", r"em.max_iter must be an integer, got bool"),

@@ -145,6 +145,7 @@ def gapfill_fill(
     seed: int,
     window: int | None = None,
 ) -> tuple[F64, F64 | None, dict[str, object]]: ...
+def gapfill_format_rows(x: F64, sep: str, nan_text: str) -> list[str]: ...
 
 GAPFILL_AUTO_WINDOW: int
 

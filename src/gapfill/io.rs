@@ -242,9 +242,172 @@ pub fn write_trc(trc: &Trc, x: &[f64]) -> String {
     s
 }
 
+/// Appends Python's `repr(v)` of a float: the shortest digits that read back to `v` (as
+/// CPython's `float_repr_style = 'short'`, `PyOS_double_to_string(v, 'r', 0,
+/// Py_DTSF_ADD_DOT_0)`), in positional notation for decimal exponents -4 <= e < 16
+/// (`1000000000000000.0`, `0.0001`, with `.0` on whole numbers) and otherwise as `1.5e-05`,
+/// `1e+16` (sign and at least two exponent digits); `nan`, `inf`, `-inf`, `-0.0`.
+///
+/// The digits are Rust's shortest round-trip digits (`{:e}`), which are CPython's dtoa mode 0
+/// digits except when `v` lies exactly halfway between two shortest candidates: dtoa then takes
+/// the even last digit (`1140579860715907.25` → `…907.2`), Rust the upper one; such ties are
+/// found exactly (see [`exact_tie`]) and resolved as dtoa does. `scratch` is a reusable buffer.
+pub fn push_py_repr(out: &mut String, scratch: &mut String, v: f64) {
+    use std::fmt::Write;
+    if v.is_nan() {
+        out.push_str("nan");
+        return;
+    }
+    if v.is_infinite() {
+        out.push_str(if v > 0.0 { "inf" } else { "-inf" });
+        return;
+    }
+    if v.is_sign_negative() {
+        out.push('-');
+    }
+    if v == 0.0 {
+        out.push_str("0.0");
+        return;
+    }
+    let a = v.abs();
+    scratch.clear();
+    let _ = write!(scratch, "{a:e}"); // "d[.ddd]e[-]x"
+    let (mant, exp) = scratch.split_once('e').unwrap_or((scratch.as_str(), "0"));
+    let exp: i32 = exp.parse().unwrap_or(0);
+    let mut digits: Vec<u8> = mant.bytes().filter(|c| c.is_ascii_digit()).collect();
+    let n = digits.len() as i32;
+    let decpt = exp + 1; // the value is 0.DIGITS x 10^decpt
+    if exact_tie(a, n - decpt) {
+        // the exact value has n + 1 digits ending in 5: keep the n first, rounded to even
+        let exact = format!("{a:.*e}", n as usize);
+        let low: Vec<u8> = exact
+            .bytes()
+            .take_while(|&c| c != b'e')
+            .filter(u8::is_ascii_digit)
+            .collect();
+        if low.len() == digits.len() + 1 && low[low.len() - 1] == b'5' {
+            let mut even = low[..low.len() - 1].to_vec();
+            let last = even.len() - 1;
+            if (even[last] - b'0') % 2 == 1 {
+                even[last] += 1; // 1..7 -> 2..8 (a 9 would make a shorter candidate)
+            }
+            // only if it reads back to `a` (below a power of two the interval is narrower)
+            let text = format!("0.{}e{decpt}", std::str::from_utf8(&even).unwrap_or("x"));
+            if text.parse::<f64>() == Ok(a) {
+                digits = even;
+            }
+        }
+    }
+    let digits = std::str::from_utf8(&digits).unwrap_or("0");
+    if decpt <= -4 || decpt > 16 {
+        out.push_str(&digits[..1]);
+        if n > 1 {
+            out.push('.');
+            out.push_str(&digits[1..]);
+        }
+        let _ = write!(out, "e{}{:02}", if exp < 0 { '-' } else { '+' }, exp.abs());
+    } else if decpt <= 0 {
+        out.push_str("0.");
+        (0..-decpt).for_each(|_| out.push('0'));
+        out.push_str(digits);
+    } else if decpt >= n {
+        out.push_str(digits);
+        (0..decpt - n).for_each(|_| out.push('0'));
+        out.push_str(".0");
+    } else {
+        out.push_str(&digits[..decpt as usize]);
+        out.push('.');
+        out.push_str(&digits[decpt as usize..]);
+    }
+}
+
+/// True when the positive finite `a` times `10^s` is exactly an odd multiple of 1/2, i.e. `a`
+/// lies halfway between two decimals with `s` digits after the point. With `a = m·2^e`, `m`
+/// odd: `a·10^s = m·5^s·2^(e+s)`, a half-integer iff `e + s = -1` and, for `s < 0`, `5^-s`
+/// divides `m`.
+fn exact_tie(a: f64, s: i32) -> bool {
+    let bits = a.to_bits();
+    let (frac, biased) = (bits & ((1 << 52) - 1), ((bits >> 52) & 0x7ff) as i32);
+    let (mut m, mut e) = if biased == 0 {
+        (frac, -1074)
+    } else {
+        (frac | (1 << 52), biased - 1075)
+    };
+    if m == 0 {
+        return false;
+    }
+    let tz = m.trailing_zeros();
+    m >>= tz;
+    e += tz as i32;
+    if e + s != -1 {
+        return false;
+    }
+    s >= 0 || (-s <= 22 && m % 5u64.pow((-s) as u32) == 0)
+}
+
+/// Rows of a row-major `T × d` table as text: each value as Python's `repr` (see
+/// [`push_py_repr`]), NaN as `nan_text`, values joined by `sep`, one string per row (no line
+/// end). Rows are formatted in parallel (rayon).
+pub fn format_rows(x: &[f64], d: usize, sep: &str, nan_text: &str) -> Vec<String> {
+    use rayon::prelude::*;
+    x.par_chunks(d.max(1))
+        .map_init(String::new, |scratch, row| {
+            let mut s = String::with_capacity(row.len() * 20);
+            for (i, &v) in row.iter().enumerate() {
+                if i > 0 {
+                    s.push_str(sep);
+                }
+                if v.is_nan() {
+                    s.push_str(nan_text);
+                } else {
+                    push_py_repr(&mut s, scratch, v);
+                }
+            }
+            s
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn py_repr_of_floats() {
+        let cases = [
+            (0.0, "0.0"),
+            (-0.0, "-0.0"),
+            (1.0, "1.0"),
+            (-2.5, "-2.5"),
+            (0.1, "0.1"),
+            (1e16, "1e+16"),
+            (1e15, "1000000000000000.0"),
+            (123456789012345.6, "123456789012345.6"),
+            (1234567890123456.7, "1234567890123456.8"),
+            (0.0001, "0.0001"),
+            (0.00001, "1e-05"),
+            (1.5e-7, "1.5e-07"),
+            (1e22, "1e+22"),
+            (1.7976931348623157e308, "1.7976931348623157e+308"),
+            (4562319442863629.0 / 4.0, "1140579860715907.2"),
+            (4562319442863631.0 / 4.0, "1140579860715907.8"),
+            (2f64.powi(-24), "5.960464477539063e-08"),
+            (5e-324, "5e-324"),
+            (f64::INFINITY, "inf"),
+            (f64::NEG_INFINITY, "-inf"),
+            (f64::NAN, "nan"),
+        ];
+        let (mut s, mut scratch) = (String::new(), String::new());
+        for (v, want) in cases {
+            s.clear();
+            push_py_repr(&mut s, &mut scratch, v);
+            assert_eq!(s, want, "{v:e}");
+        }
+        assert_eq!(
+            format_rows(&[1.0, f64::NAN, -3.25, 0.5], 2, "\t", ""),
+            vec!["1.0\t".to_string(), "-3.25\t0.5".to_string()]
+        );
+    }
 
     #[test]
     fn csv_round_trip_with_header_and_missing() {

@@ -112,8 +112,33 @@ fn gapfill_fill<'py>(
     Ok((filled, std, info))
 }
 
+/// The rows of a `(T, d)` float64 array as text, each value as Python's `repr`, NaN as
+/// `nan_text`, joined by `sep` (one string per row; `gapfill/text_stream.py` writes TRC and
+/// CSV files with it). Formatting runs with the GIL released.
+#[pyfunction]
+fn gapfill_format_rows(
+    py: Python<'_>,
+    x: PyReadonlyArrayDyn<'_, f64>,
+    sep: &str,
+    nan_text: &str,
+) -> PyResult<Vec<String>> {
+    let shape = x.shape().to_vec();
+    if shape.len() != 2 {
+        return Err(PyValueError::new_err(format!(
+            "expected a 2-D array, got shape {shape:?}"
+        )));
+    }
+    if shape[1] == 0 {
+        return Ok(vec![String::new(); shape[0]]);
+    }
+    let data = x.as_slice()?.to_vec(); // C-contiguous required
+    let (sep, nan_text) = (sep.to_string(), nan_text.to_string());
+    Ok(py.detach(|| gapfill::io::format_rows(&data, shape[1], &sep, &nan_text)))
+}
+
 /// Adds the gap-filling functions to the native module.
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(gapfill_format_rows, m)?)?;
     m.add_function(wrap_pyfunction!(gapfill_fill, m)?)?;
     m.add("GAPFILL_AUTO_WINDOW", gapfill::AUTO_WINDOW)?;
     Ok(())

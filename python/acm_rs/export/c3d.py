@@ -32,7 +32,8 @@ def to_c3d(
     most C3D readers expect); ``POINT:DESCRIPTIONS`` say which points are markers and which
     joints. Frames where a point is not finite are written as NaN with residual -1 (the C3D
     "invalid" flag); a valid point has residual 1 if some camera detected it and 0 if only the
-    tracking model placed it (C3D's value for a computed point), the convention of every C3D
+    tracking model placed it (C3D's value for a computed point; camera mask 0), written by the
+    C3D specification (residual in the low byte of the fourth word), the convention of every C3D
     file acm-rs writes (:data:`acm_rs.gapfill.io.C3D_RESIDUALS`; the file carries the
     ``ACM_RS:FILLED_RESIDUAL`` parameter, so :func:`acm_rs.gapfill.io.read` reads such
     points back as filled).
@@ -59,7 +60,7 @@ def to_c3d(
     import ezc3d
 
     from ..gapfill import c3d_stream
-    from ..gapfill.io import C3D_RESIDUALS, set_c3d_frame_count
+    from ..gapfill.io import C3D_RESIDUALS, C3D_WORD4, set_c3d_frame_count
 
     path = Path(path)
     if path.suffix.lower() != ".c3d":
@@ -104,9 +105,11 @@ def to_c3d(
     c["parameters"]["POINT"]["UNITS"]["value"] = [units]
     c.add_parameter("PROCESSING", "SOFTWARE", "acm-rs")
     c.add_parameter("ACM_RS", "FILLED_RESIDUAL", [float(filled_r)])
+    c.add_parameter("ACM_RS", "WORD4", [C3D_WORD4])
+    scale = float(np.asarray(c["parameters"]["POINT"]["SCALE"]["value"]).ravel()[0])
     if n_t > 65535 or 16 * n_t * n_p > c3d_stream.STREAM_BYTES:
-        # long recordings: ezc3d's header and parameters, the frames in blocks (the same
-        # bytes as ezc3d writes, in bounded memory; gapfill/c3d_stream.py)
+        # long recordings: ezc3d's header and parameters, the frames in blocks (bounded
+        # memory; over 65,535 frames in the layout ezc3d reads whole; gapfill/c3d_stream.py)
         xyz[~valid] = np.nan
         c3d_stream.write_streamed(path, c, xyz, residuals, None)
         return path
@@ -118,4 +121,6 @@ def to_c3d(
     set_c3d_frame_count(c, n_t)  # recordings over 65535 frames
     with atomic_path(path) as tmp:
         c.write(str(tmp))
+        # the fourth words by the C3D specification (ezc3d swaps their two bytes)
+        c3d_stream.patch_point_words(Path(tmp), residuals, scale)
     return path

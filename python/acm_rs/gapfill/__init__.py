@@ -8,6 +8,6 @@ baselines of the paper's Table 1.
 """
 
 from .chunked import fill_chunked
-from .filling import METHODS, FillResult, fill
+from .filling import METHODS, FillResult, MarkerFill, fill, fill_markers
 
-__all__ = ["METHODS", "FillResult", "fill", "fill_chunked"]
+__all__ = ["METHODS", "FillResult", "MarkerFill", "fill", "fill_chunked", "fill_markers"]

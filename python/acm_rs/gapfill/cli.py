@@ -20,10 +20,36 @@ def _stage(msg: str, start: float) -> None:
     )
 
 
+def _read_report(m, chosen: np.ndarray) -> list[str]:
+    """Lines saying what was read as missing (per reason, over the ``chosen`` points) and which
+    points are left as read (not markers)."""
+    missing = np.isnan(m.xyz).any(axis=2) & chosen[None, :]
+    why = [
+        f"{name}: {int((mask & chosen[None, :]).sum()):,}"
+        for name, mask in m.missing_reasons.items()
+        if (mask & chosen[None, :]).any()
+    ]
+    lines = [
+        f"read as missing: {int(missing.sum()):,} marker-frames"
+        + (f" ({', '.join(why)})" if why else " (empty or NaN values)" if missing.any() else "")
+    ]
+    kinds = m.kinds or ["marker"] * len(m.labels)
+    other: dict[str, int] = {}
+    for j in np.flatnonzero(~chosen):
+        other[kinds[j]] = other.get(kinds[j], 0) + 1
+    if other:
+        per = ", ".join(f"{k}s: {n}" for k, n in other.items())
+        lines.append(
+            f"skipped {int((~chosen).sum())} non-marker points ({per}), written back as read; "
+            "--include-non-markers fills them too"
+        )
+    return lines
+
+
 def _cmd_gapfill(args: argparse.Namespace) -> int:
     from .._io import check_output_path
     from .._native import AcmNumericalError
-    from .filling import fill
+    from .filling import fill_markers
     from .io import check_output, read, sidecar_path, write_like
 
     src = Path(args.input)
@@ -49,7 +75,14 @@ def _cmd_gapfill(args: argparse.Namespace) -> int:
         opts["gamma"] = args.gamma
     if args.combine is not None:
         opts["combine"] = args.combine
-    missing = np.isnan(m.xyz).any(axis=2)  # (T, M) marker-frames to fill
+    chosen = np.ones(n_m, dtype=bool) if args.include_non_markers else m.is_marker
+    missing = np.isnan(m.xyz).any(axis=2) & chosen[None, :]  # (T, M) point-frames to fill
+    if not chosen.any():
+        raise ValueError(
+            f"{src} holds no markers, only model outputs (C3D POINT:ANGLES, FORCES, ...); "
+            "pass --include-non-markers to fill them"
+        )
+    report = _read_report(m, chosen)
     _stage(
         f"filling {int(missing.sum()):,} missing marker-frames with {args.method}"
         + (" and posterior SDs" if args.std else ""),
@@ -63,25 +96,29 @@ def _cmd_gapfill(args: argparse.Namespace) -> int:
             window = args.window or None  # 0: one pass
         if window and window < n_t and args.method.startswith("lowdim"):
             _stage(f"smoothing in windows of {window:,} frames (bounded memory; --window)", start)
-        res = fill(m.xyz, method=args.method, full_output=bool(args.std), empty="skip",
-                   window=window, **opts)  # fmt: skip
+        res = fill_markers(m, include_non_markers=args.include_non_markers,
+                           method=args.method, std=bool(args.std), empty="skip",
+                           window=window, **opts)  # fmt: skip
     except AcmNumericalError as exc:
         raise ValueError(
             f"{src}: the {args.method} fill failed numerically ({exc}); try --method spline, "
             "or check the file for frozen or duplicated markers"
         ) from None
-    filled = res.filled if args.std else res
-    # what the fill imputed: the missing coordinates it made finite (observed ones are kept)
-    imputed = np.isnan(m.xyz) & np.isfinite(filled)
+    # what the fill imputed: the missing coordinates it made finite (observed ones are kept;
+    # the points not selected are written back as read)
+    filled, imputed = res.filled, res.imputed
     _stage("filled", start)
     write_like(out, m, filled, filled=imputed)
     skipped = np.flatnonzero(missing.all(axis=0))
     n_filled = int(imputed.any(axis=2).sum())
     print(
-        f"acm-rs gapfill: {src} ({n_t} frames, {n_m} markers, "
+        f"acm-rs gapfill: {src} ({n_t} frames, {int(chosen.sum())} "
+        f"{'points' if args.include_non_markers else 'markers'}, "
         f"{int(missing.sum())} missing marker-frames) -> {out}: filled {n_filled} with "
         f"{args.method} in {time.perf_counter() - start:.1f} s"
     )
+    for line in report:
+        print(f"  {line}")
     if len(skipped):
         names = [m.labels[i] for i in skipped]
         print(f"  left missing (never observed): {', '.join(names)}")
@@ -160,6 +197,12 @@ def add_subcommands(sub: argparse._SubParsersAction) -> None:
         help=f"smooth in windows of this many frames (bounded memory; the model is learned "
         f"from the whole recording and the result equals one pass); 0: one pass; default: "
         f"windows of {AUTO_WINDOW} frames above {2 * AUTO_WINDOW} frames",
+    )  # fmt: skip
+    g.add_argument(
+        "--include-non-markers", action="store_true",
+        help="also fill the C3D points that are not markers (model outputs listed in "
+        "POINT:ANGLES, FORCES, MOMENTS, POWERS, SCALARS, REACTIONS); by default they are "
+        "written back as read",
     )  # fmt: skip
     g.add_argument("--overwrite", action="store_true", help="replace an existing output")
     g.set_defaults(func=_cmd_gapfill)

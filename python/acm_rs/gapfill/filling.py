@@ -10,13 +10,16 @@ baselines of the paper's Table 1.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .. import _native
 
-__all__ = ["METHODS", "FillResult", "fill"]
+if TYPE_CHECKING:
+    from .io import Markers
+
+__all__ = ["METHODS", "FillResult", "MarkerFill", "fill", "fill_markers"]
 
 METHODS: tuple[str, ...] = ("lowdim", "lowdim-paper", "linear", "spline", "rw", "cv", "msvd")
 """Method names accepted by :func:`fill`, in the order of the evaluation tables."""
@@ -259,3 +262,101 @@ def fill(
             std[~nan] = 0.0
     info = {**info, "method": method, "options": opts, "skipped_markers": np.flatnonzero(dead)}
     return FillResult(filled=out, std=std, imputed=imputed, info=info)
+
+
+@dataclass(frozen=True)
+class MarkerFill:
+    """Output of :func:`fill_markers`: every point of a marker file, the filled ones and the
+    ones left as read.
+
+    Attributes
+    ----------
+    filled : ndarray, shape (n_frames, n_points, 3)
+        The points of the file: the selected ones filled, the others exactly as read (NaN
+        where missing).
+    imputed : ndarray of bool, shape (n_frames, n_points, 3)
+        True where a missing coordinate was filled.
+    std : ndarray or None, shape (n_frames, n_points, 3)
+        Posterior standard deviations (when asked for and the method has them): 0 at observed
+        values and at the points left as read, NaN where a value is still missing.
+    selected : ndarray of bool, shape (n_points,)
+        The points given to the filler (the markers, or every point).
+    skipped : dict of str to list of str
+        Labels of the points left as read, by kind (``"angle"``, ``"force"``, ...).
+    result : FillResult or None
+        The filler's own output on the selected points (``full_output``).
+    """
+
+    filled: np.ndarray
+    imputed: np.ndarray
+    std: np.ndarray | None
+    selected: np.ndarray
+    skipped: dict[str, list[str]]
+    result: FillResult | None = None
+
+
+def fill_markers(
+    m: Markers,
+    *,
+    include_non_markers: bool = False,
+    method: str = "lowdim",
+    std: bool = False,
+    empty: str = "skip",
+    **options: Any,
+) -> MarkerFill:
+    """Fill the gaps of the markers of a file read with :func:`acm_rs.gapfill.io.read`.
+
+    Points that are not markers (model outputs a C3D lists in POINT:ANGLES, FORCES, MOMENTS,
+    POWERS, SCALARS, REACTIONS: ``m.kinds``) are left exactly as read and kept out of the
+    model (their units and motion are not a marker's); ``include_non_markers=True`` fills
+    them too, in the same model.
+
+    Parameters
+    ----------
+    m : Markers
+        ``m.xyz`` (n_frames, n_points, 3), NaN where missing; ``m.kinds`` says which points
+        are markers (None: all).
+    include_non_markers : bool
+        Also fill the points that are not markers (default False).
+    method, empty, **options
+        As for :func:`fill` (``empty="skip"`` by default: a point never observed stays NaN).
+    std : bool
+        Also compute posterior standard deviations (``full_output`` of :func:`fill`).
+
+    Returns
+    -------
+    MarkerFill
+
+    Raises
+    ------
+    ValueError
+        When no point is selected (a file of model outputs only, without
+        ``include_non_markers``), or as :func:`fill`.
+    """
+    xyz = np.asarray(m.xyz, dtype=np.float64)
+    is_marker = np.asarray(m.is_marker, dtype=bool)
+    selected = np.ones_like(is_marker) if include_non_markers else is_marker
+    kinds = m.kinds or ["marker"] * xyz.shape[1]
+    skipped: dict[str, list[str]] = {}
+    for j in np.flatnonzero(~selected):
+        skipped.setdefault(kinds[j], []).append(m.labels[j])
+    if not selected.any():
+        raise ValueError(
+            "the file holds no markers, only model outputs ("
+            + ", ".join(f"{k}s: {len(v)}" for k, v in skipped.items())
+            + "); pass include_non_markers=True (--include-non-markers) to fill them"
+        )
+    everything = bool(selected.all())
+    sub = xyz if everything else xyz[:, selected]
+    res = fill(sub, method=method, full_output=std, empty=empty, **options)
+    out_sub = res.filled if std else res
+    filled = out_sub if everything else xyz.copy()
+    if not everything:
+        filled[:, selected] = out_sub
+    imputed = np.isnan(xyz) & np.isfinite(filled)
+    sd = None
+    if std and res.std is not None:
+        sd = np.zeros_like(xyz)
+        sd[:, selected] = res.std
+        sd[np.isnan(filled)] = np.nan
+    return MarkerFill(filled, imputed, sd, selected, skipped, res if std else None)

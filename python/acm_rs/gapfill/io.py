@@ -29,7 +29,11 @@ from . import c3d_stream
 from .c3d_stream import set_c3d_frame_count, set_param
 
 __all__ = [
+    "C3D_NON_MARKER_GROUPS",
     "C3D_RESIDUALS",
+    "MISSING_NAN",
+    "MISSING_NEGATIVE",
+    "MISSING_ZERO",
     "Markers",
     "check_output",
     "read",
@@ -48,6 +52,37 @@ point), ``0`` a point filled by acm-rs (C3D's value for a computed, not measured
 measured point keeps the residual of its source, or ``1`` (the smallest stored residual, in
 POINT:UNITS) when the source had none or 0. :func:`read_c3d` reads residual 0 back as
 ``Markers.filled`` only in files carrying the ``ACM_RS:FILLED_RESIDUAL`` parameter."""
+
+C3D_NON_MARKER_GROUPS = {
+    "ANGLES": "angle",
+    "FORCES": "force",
+    "MOMENTS": "moment",
+    "POWERS": "power",
+    "SCALARS": "scalar",
+    "REACTIONS": "reaction",
+}
+"""The POINT parameters that list the points of a C3D that are not markers (model outputs such
+as Plug-in Gait's joint angles, forces, moments and powers), with the kind each gives. These are
+the point types of the C3D convention as BTK/Mokka read them (btkC3DFileIO.cpp: ANGLE, FORCE,
+MOMENT, POWER, SCALAR, REACTION, with ``<TYPE>_UNITS``); continuation parameters (``ANGLES2``,
+...) are read too."""
+
+MISSING_NEGATIVE = "negative residual"
+"""Reason a C3D point is missing: its fourth word (residual) is negative, the C3D rule for an
+invalid point (c3d.org, "3D data" and "Notes for programmers"; ezc3d, BTK and py-c3d alike)."""
+MISSING_NAN = "NaN coordinates"
+"""Reason a C3D point is missing: a coordinate is NaN (written by tools that store gaps as NaN)
+while its residual does not say invalid."""
+MISSING_ZERO = "zero-coded (0, 0, 0)"
+"""Reason a C3D marker is missing: all three coordinates are exactly 0, how some systems code a
+gap (e.g. Qualisys Track Manager 2004-2005: (0, 0, 0) with a fourth word 65535.0, which ezc3d
+and py-c3d decode as a positive residual). Only markers: a model output (a power, a force
+without contact) is legitimately 0."""
+
+C3D_WORD4 = 2
+"""Value of the parameter ``ACM_RS:WORD4`` in the C3D files acm-rs writes: their fourth point
+words follow the C3D specification (camera mask in the high byte, residual in the low byte).
+acm-rs files without it (older versions) hold the residual in the high byte and are read so."""
 
 _SIDECAR_FORMAT = "acm-rs-markers"
 
@@ -70,6 +105,15 @@ class Markers:
         Format-specific data needed to write a faithful copy (the ezc3d object, TRC header).
     filled : ndarray of bool, shape (n_frames, n_markers), or None
         True where a value was filled by acm-rs (from the C3D residuals or the sidecar).
+    kinds : list of str or None
+        What each point is (``n_markers`` entries): ``"marker"``, or for the model outputs a
+        C3D lists in POINT:ANGLES, FORCES, MOMENTS, POWERS, SCALARS or REACTIONS ``"angle"``,
+        ``"force"``, ``"moment"``, ``"power"``, ``"scalar"``, ``"reaction"`` (see
+        :data:`C3D_NON_MARKER_GROUPS`). None: every point is a marker (TRC, CSV).
+    missing_reasons : dict of str to ndarray of bool, shape (n_frames, n_markers)
+        Why points were read as missing (NaN in ``xyz``), one mask per reason: for C3D
+        :data:`MISSING_NEGATIVE` (the C3D rule) and :data:`MISSING_ZERO` (markers coded as
+        exactly (0, 0, 0)); empty when the format has no such codes.
     """
 
     xyz: np.ndarray
@@ -78,6 +122,16 @@ class Markers:
     units: str = "mm"
     source: dict[str, Any] = field(default_factory=dict)
     filled: np.ndarray | None = None
+    kinds: list[str] | None = None
+    missing_reasons: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def is_marker(self) -> np.ndarray:
+        """Bool (n_markers,): True for the points that are markers (all of them when
+        ``kinds`` is None)."""
+        if self.kinds is None:
+            return np.ones(self.xyz.shape[1], dtype=bool)
+        return np.array([k == "marker" for k in self.kinds], dtype=bool)
 
 
 def sidecar_path(path: str | os.PathLike[str]) -> Path:
@@ -300,10 +354,18 @@ def _c3d_layout(c, p: Path) -> tuple[int, int, int, float]:
     return (int(start[0]) - 1) * 512, 4 * n_points + n_analog, 4 if scale < 0 else 2, scale
 
 
-def _c3d_points_raw(p: Path, c, n_frames: int) -> tuple[np.ndarray, np.ndarray, dict]:
+def _c3d_legacy_words(c) -> bool:
+    """True for a file written by acm-rs before the ``ACM_RS:WORD4`` marker (it has
+    ``ACM_RS:FILLED_RESIDUAL`` only): its fourth words hold the residual in the high byte."""
+    acm_rs = _param(c, "ACM_RS", "FILLED_RESIDUAL") is not None
+    return acm_rs and _param(c, "ACM_RS", "WORD4") is None
+
+
+def _c3d_points_raw(p: Path, c, n_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Point data of a C3D read in blocks from the file (long or large files, see
     :mod:`acm_rs.gapfill.c3d_stream`): ``(xyz (n_frames, n_points, 3), residual (n_frames,
-    n_points), where the frames are)``; Intel float format only."""
+    n_points), camera mask (n_frames, n_points), where the frames are)``; Intel float format
+    only. Fourth words decoded by the C3D specification (old acm-rs files: their layout)."""
     from .c3d_stream import header_layout, read_points
 
     offset, words, size, scale = _c3d_layout(c, p)
@@ -314,18 +376,140 @@ def _c3d_points_raw(p: Path, c, n_frames: int) -> tuple[np.ndarray, np.ndarray, 
             "supported; convert it to the Intel floating-point format"
         )
     n_points = int(_param(c, "POINT", "USED")[0])
-    xyz, residual = read_points(p, offset, words, n_points, n_frames, scale)
+    xyz, residual, mask = read_points(
+        p, offset, words, n_points, n_frames, scale, _c3d_legacy_words(c)
+    )
     where = {"path": str(p), "offset": offset, "words": words, "n_points": n_points,
              "n_frames": n_frames}  # fmt: skip
-    return xyz, residual, where
+    return xyz, residual, mask, where
+
+
+def _c3d_point_words(p: Path, c, n_frames: int, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals and camera masks of a C3D that ezc3d read whole, decoded from the file's
+    fourth words by the C3D specification (ezc3d 1.7.2 swaps the two bytes; see
+    :mod:`acm_rs.gapfill.c3d_stream`): ``(residual, mask)``, each (n_frames, n_points)."""
+    offset, words, size, scale = _c3d_layout(c, p)
+    h = c3d_stream.header_layout(p)
+    word = c3d_stream.read_fourth_words(
+        p, offset, words, n_points, n_frames, h["processor"], size == 4
+    )
+    return c3d_stream.decode_point_words(word, scale, _c3d_legacy_words(c))
+
+
+def _c3d_check_layout(p: Path, c, declared: int, offset: int, words: int, size: int) -> None:
+    """Refuse a C3D whose header and parameters give different frame sizes when its data fit
+    the header's: ezc3d follows the parameters (POINT:USED, ANALOG:USED x ANALOG:RATE /
+    POINT:RATE) and would read every frame shifted (c3d.org sample28, BTS files with
+    ANALOG:USED 0 but analog words in the frames); BTK follows the header."""
+    h = c3d_stream.header_layout(p)
+    if h is None or h["words"] == words or h["words"] <= 0 or words <= 0:
+        return
+    data = p.stat().st_size - offset
+    by_header, by_params = data // (h["words"] * size), data // (words * size)
+    spare = 512 // (words * size) + 1  # frames the padding of the last block can hold
+    if by_header == declared and by_params > declared + spare:
+        raise ValueError(
+            f"{p}: the C3D header says {h['words']} words per frame and the parameters "
+            f"{words} (POINT:USED, ANALOG:USED, ANALOG:RATE); the data fit the header, so the "
+            "parameters are wrong and readers that follow them read shifted frames; fix "
+            "ANALOG:USED/ANALOG:RATE or export the file again"
+        )
+
+
+def _c3d_values(group: dict, name: str) -> list:
+    """A parameter's values with its continuations (``LABELS``, ``LABELS2``, ...: the C3D
+    convention for lists over 255 entries)."""
+    out: list = []
+    for key in [name] + [f"{name}{i}" for i in range(2, 100)]:
+        if key not in group:
+            break
+        out += list(np.asarray(group[key]["value"]).ravel())
+    return out
+
+
+def _c3d_check_labels(p: Path, c, group: str, used: int) -> list[str]:
+    """The labels of the ``used`` (``<group>:USED``) points or analog channels: the first
+    ``used`` entries of ``<group>:LABELS`` (+ LABELS2, ...), the C3D meaning of USED. Surplus
+    labels name no stored data (c3d.org sample01/02, Vicon 370: 48 or 75 point labels for 26 or
+    36 points; ezc3d reads them all, BTK only USED) and are dropped from the parameters (said in
+    a warning), so a copy has as many labels as data (ezc3d refuses to write it otherwise). Too
+    few labels: refused before any work."""
+    par = c["parameters"].get(group, {})
+    labels = [str(s) for s in _c3d_values(par, "LABELS")]
+    if len(labels) < used:
+        raise ValueError(
+            f"{p}: {group}:LABELS has {len(labels)} labels for {used} {group}:USED entries; "
+            "the file is damaged (add the missing labels)"
+        )
+    if len(labels) > used:
+        import warnings
+
+        warnings.warn(
+            f"{p}: {group}:LABELS has {len(labels)} entries for {used} {group}:USED; the "
+            f"first {used} name the data, the other {len(labels) - used} name nothing and are "
+            "left out of a written copy",
+            stacklevel=3,
+        )
+        keep = used
+        for key in ["LABELS"] + [f"LABELS{i}" for i in range(2, 100)]:
+            if key not in par:
+                break
+            vals = list(par[key]["value"])
+            par[key]["value"] = vals[:keep]
+            keep = max(keep - len(vals), 0)
+        for key in [f"LABELS{i}" for i in range(2, 100)]:
+            if key in par and not len(par[key]["value"]):
+                del par[key]
+    return labels[:used]
+
+
+def _c3d_point_labels(p: Path, c, n_points: int) -> list[str]:
+    """The labels of the ``n_points`` points (POINT:LABELS cut to POINT:USED), after the same
+    check of the analog labels (see :func:`_c3d_check_labels`)."""
+    used = _param(c, "ANALOG", "USED")
+    if used is not None and used.size and "LABELS" in c["parameters"].get("ANALOG", {}):
+        _c3d_check_labels(p, c, "ANALOG", int(used[0]))
+    return _c3d_check_labels(p, c, "POINT", n_points)
+
+
+def _c3d_point_kinds(c, labels: list[str]) -> list[str]:
+    """The kind of each point: ``"marker"``, or the kind of the POINT group that lists it
+    (:data:`C3D_NON_MARKER_GROUPS`); labels are compared without surrounding blanks."""
+    point = c["parameters"]["POINT"]
+    kind_of: dict[str, str] = {}
+    for group, kind in C3D_NON_MARKER_GROUPS.items():
+        for name in _c3d_values(point, group):
+            kind_of.setdefault(str(name).strip(), kind)
+    return [kind_of.get(lab.strip(), "marker") for lab in labels]
+
+
+def _c3d_missing(
+    xyz: np.ndarray, residual: np.ndarray | None, is_marker: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Set to NaN (in place) the points a C3D codes as missing and say why, per reason:
+    :data:`MISSING_NEGATIVE` (a negative residual) and :data:`MISSING_NAN` (a NaN coordinate
+    with a valid residual) for every point, :data:`MISSING_ZERO` (x = y = z = 0 exactly) for
+    the points where ``is_marker`` (markers of files not written by acm-rs). One coordinate
+    at 0 is a valid value (2-D data, a marker on a lab axis).
+    Returns one mask (n_frames, n_points) per reason, each point under its first reason."""
+    nan = np.isnan(xyz).any(axis=2)
+    negative = np.zeros_like(nan) if residual is None else residual < 0
+    nan &= ~negative
+    zero = (xyz == 0).all(axis=2) & is_marker[None, :] & ~negative
+    xyz[negative | nan | zero] = np.nan
+    return {MISSING_NEGATIVE: negative, MISSING_NAN: nan, MISSING_ZERO: zero}
 
 
 def read_c3d(path: str | os.PathLike[str]) -> Markers:
     """Read a C3D file with ezc3d (large files: parameters with ezc3d, frames in blocks).
 
-    Missing markers (NaN, or a negative residual) become NaN. The number of frames is the
-    declared one (POINT:LONG_FRAMES, TRIAL:ACTUAL_END_FIELD or POINT:FRAMES, so files over
-    65535 frames read whole), and a file holding fewer frames than it declares is refused.
+    Missing points become NaN, each counted under its reason in ``missing_reasons``: a negative
+    residual (the C3D rule), NaN coordinates, and for markers exactly (0, 0, 0) (how Qualisys
+    and other systems code gaps). Points listed in POINT:ANGLES, FORCES, MOMENTS, POWERS,
+    SCALARS or REACTIONS are model outputs, not markers (``kinds``). Only the first POINT:USED
+    labels name points. The number of frames is the declared one (POINT:LONG_FRAMES,
+    TRIAL:ACTUAL_END_FIELD or POINT:FRAMES, so files over 65535 frames read whole), and a file
+    holding fewer frames than it declares is refused.
 
     Parameters
     ----------
@@ -349,6 +533,7 @@ def read_c3d(path: str | os.PathLike[str]) -> Markers:
     if not p.is_file():
         raise ValueError(f"C3D file not found: {p}")
     _c3d_check_sections(p)
+    c3d_stream.check_processor(p)  # big-endian (SGI/MIPS): refused in one line
     stream = c3d_stream.wants_streaming(p)
     try:
         c = c3d_stream.read_parameters(p) if stream else ezc3d.c3d(str(p))
@@ -365,12 +550,13 @@ def read_c3d(path: str | os.PathLike[str]) -> Markers:
             f"{p}: incomplete C3D file: it declares {declared} frames but holds only {have} "
             f"({p.stat().st_size} bytes); the file was cut (copy or download it again)"
         )
-    meta = c["data"].get("meta_points", {})
-    res = meta.get("residuals") if isinstance(meta, dict) else None
+    _c3d_check_layout(p, c, declared, offset, words, size)
+    labels = _c3d_point_labels(p, c, int(_param(c, "POINT", "USED")[0]))
+    kinds = _c3d_point_kinds(c, labels)
     where = None
     if stream or declared > pts.shape[2]:
         try:
-            xyz, residual, where = _c3d_points_raw(p, c, declared)
+            xyz, residual, mask, where = _c3d_points_raw(p, c, declared)
         except ValueError:
             raise
         except Exception as exc:  # a damaged layout (negative offset, odd sizes)
@@ -382,22 +568,57 @@ def read_c3d(path: str | os.PathLike[str]) -> Markers:
                 "is damaged"
             )
         xyz = pts[:3].transpose(2, 1, 0).copy()
-        residual = None
-        if res is not None:
-            res = np.asarray(res)
-            if res.shape == (1, xyz.shape[1], xyz.shape[0]):
-                residual = res[0].T
-    if residual is not None:
-        xyz[residual < 0] = np.nan
+        # the fourth words from the file, by the C3D specification (not ezc3d's residuals)
+        residual, mask = _c3d_point_words(p, c, declared, xyz.shape[1])
+    # (0, 0, 0) as a gap is a convention of other writers (old Qualisys); acm-rs codes its gaps
+    # by a negative word, so in its own files a marker at the origin is a measurement
+    zero_coded = np.array([k == "marker" for k in kinds], dtype=bool)
+    if _param(c, "ACM_RS", "WORD4") is not None:
+        zero_coded[:] = False
+    reasons = _c3d_missing(xyz, residual, zero_coded)
     point = c["parameters"]["POINT"]
-    labels = [str(s) for s in point["LABELS"]["value"]][: xyz.shape[1]]
     rate = float(np.asarray(point["RATE"]["value"]).ravel()[0])
     units = point.get("UNITS", {}).get("value", ["mm"])
     filled = None
     if _param(c, "ACM_RS", "FILLED_RESIDUAL") is not None and residual is not None:
         filled = (residual == 0) & ~np.isnan(xyz[:, :, 0])
-    src = {"c3d": c, "residual": residual, "frames_at": where}
-    return Markers(xyz, labels, rate, str(units[0]) if len(units) else "mm", src, filled)
+    src = {"c3d": c, "residual": residual, "camera_mask": mask, "frames_at": where}
+    unit = str(units[0]) if len(units) else "mm"
+    return Markers(xyz, labels, rate, unit, src, filled, kinds, reasons)
+
+
+def _c3d_float_scale(c) -> float:
+    """POINT:SCALE of a float-format output, set in ``c``: negative (the float-format flag; an
+    integer source's positive scale is negated, ezc3d writes floats), -1 when absent or 0."""
+    v = _param(c, "POINT", "SCALE")
+    scale = -abs(float(v[0])) if v is not None and v.size and float(v[0]) != 0 else -1.0
+    set_param(c, "POINT", "SCALE", [scale])
+    return scale
+
+
+def _c3d_output_words(
+    m: Markers, xyz: np.ndarray, filled: np.ndarray | None, scale: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals and camera masks of a C3D output (:data:`C3D_RESIDUALS`): -1 missing, 0 and no
+    camera where filled, the source's residual and camera mask where measured (or the unknown
+    residual, 1 in POINT:UNITS, when the source has none or 0)."""
+    n_frames, n_markers, _ = xyz.shape
+    # "measured, residual unknown": 1 unit, or the largest residual the file can store
+    unknown = min(C3D_RESIDUALS["measured_unknown"], 255 * abs(scale))
+    residual = np.full((n_frames, n_markers), unknown)
+    mask = np.zeros((n_frames, n_markers), np.uint8)
+    src_res, src_mask = m.source.get("residual"), m.source.get("camera_mask")
+    if src_res is not None and src_res.shape == residual.shape:
+        np.copyto(residual, src_res, where=src_res > 0)
+        if src_mask is not None and src_mask.shape == mask.shape:
+            np.copyto(mask, src_mask, where=src_res >= 0)
+    if filled is not None:
+        residual[filled] = C3D_RESIDUALS["filled"]
+        mask[filled] = 0  # C3D: all camera bits 0 for a computed point
+    gone = np.isnan(xyz).any(axis=2)
+    residual[gone] = C3D_RESIDUALS["missing"]
+    mask[gone] = 0
+    return residual, mask
 
 
 def _write_c3d(path: Path, m: Markers, xyz: np.ndarray, filled: np.ndarray | None) -> None:
@@ -410,20 +631,15 @@ def _write_c3d(path: Path, m: Markers, xyz: np.ndarray, filled: np.ndarray | Non
         c["parameters"]["POINT"]["RATE"]["value"] = [float(m.rate)]
         c["parameters"]["POINT"]["LABELS"]["value"] = list(m.labels)
         c["parameters"]["POINT"]["UNITS"]["value"] = [m.units]
-    # Residuals (C3D_RESIDUALS): -1 missing, 0 filled, the source's (or 1) where measured.
-    residual = np.full((n_frames, n_markers), C3D_RESIDUALS["measured_unknown"])
-    src_res = m.source.get("residual")
-    if src_res is not None and src_res.shape == residual.shape:
-        np.copyto(residual, src_res, where=src_res > 0)
-    if filled is not None:
-        residual[filled] = C3D_RESIDUALS["filled"]
-    residual[np.isnan(xyz).any(axis=2)] = C3D_RESIDUALS["missing"]
+    scale = _c3d_float_scale(c)
+    residual, mask = _c3d_output_words(m, xyz, filled, scale)
     set_param(c, "ACM_RS", "FILLED_RESIDUAL", [float(C3D_RESIDUALS["filled"])])
+    set_param(c, "ACM_RS", "WORD4", [C3D_WORD4])
     big = n_frames > 65535 or 16 * n_frames * n_markers > c3d_stream.STREAM_BYTES
     if big or m.source.get("frames_at") is not None:
         # frames in blocks after ezc3d's header and parameters (bounded memory); always for a
         # source read in blocks, whose ezc3d object holds one frame (of analogs too)
-        c3d_stream.write_streamed(path, c, xyz, residual, m.source.get("frames_at"))
+        c3d_stream.write_streamed(path, c, xyz, residual, m.source.get("frames_at"), mask)
         return
     pts = np.ones((4, n_markers, n_frames))
     pts[:3] = xyz.transpose(2, 1, 0)
@@ -440,6 +656,9 @@ def _write_c3d(path: Path, m: Markers, xyz: np.ndarray, filled: np.ndarray | Non
     os.close(fd)
     try:
         c.write(tmp)
+        # ezc3d writes the fourth words with the bytes swapped and the header's scale as -1:
+        # both are rewritten by the C3D specification
+        c3d_stream.patch_point_words(Path(tmp), residual, scale, mask)
         os.chmod(tmp, new_file_mode())
         os.replace(tmp, path)
     except BaseException:
@@ -452,7 +671,9 @@ def read_trc(path: str | os.PathLike[str]) -> Markers:
     """Read a TRC file (5 header lines, ``Frame#``, ``Time``, x y z per marker).
 
     Empty fields are missing values (NaN). A file with fewer (or more) data rows than its
-    NumFrames, or whose last line has no line end (a cut file), is refused.
+    NumFrames, or whose last line has no line end (a cut file), is refused. The file is read
+    in blocks (:mod:`acm_rs.gapfill.text_stream`): memory is the array and one block, and each
+    value is the one ``float()`` gives for its field.
 
     Parameters
     ----------
@@ -463,57 +684,50 @@ def read_trc(path: str | os.PathLike[str]) -> Markers:
     -------
     Markers
         ``xyz`` of shape (n_frames, n_markers, 3); ``rate`` from DataRate, ``units`` from Units,
-        ``filled`` from the sidecar if there is one.
+        ``filled`` from the sidecar if there is one; ``source["trc"]`` keeps the Frame# and Time
+        fields as written.
     """
+    from .text_stream import read_trc_text
+
     p = Path(path)
-    text = _read_text(p, "TRC")
-    lines = text.splitlines()
-    if len(lines) < 5 or not lines[0].startswith("PathFileType"):
-        raise ValueError(f"{p}: not a TRC file (no PathFileType header)")
-    keys = [k.strip() for k in lines[1].split("\t")]
-    vals = lines[2].split("\t")
-    hdr = dict(zip(keys, vals, strict=False))
-    labels = [s.strip() for s in lines[3].split("\t")[2:] if s.strip()]
-    if not labels:
-        raise ValueError(f"{p}: line 4 names no markers")
-    d = 3 * len(labels)
-    rows, frames, times = [], [], []
-    last = len(lines)
-    for n, line in enumerate(lines[5:], start=6):
-        if not line.strip():
-            continue
-        f = line.split("\t")
-        if len(f) > d + 2:
-            raise ValueError(f"{p}: line {n} has {len(f)} fields, expected <= {d + 2}")
-        if n == last and not text.endswith(("\n", "\r")):
-            raise ValueError(
-                f"{p}: the last line ({n}) has no line end ({len(f)} of {d + 2} fields): the "
-                "file may be cut; if it is complete, end it with a line break"
-            )
-        f += [""] * (d + 2 - len(f))
+
+    def header_dict(lines: list[str]) -> dict[str, str]:
+        keys = [k.strip() for k in lines[1].split("\t")]
+        vals = lines[2].split("\t")
+        named, given = [k for k in keys if k], [v for v in vals if v.strip()]
+        if any(v.strip() for v in vals[len(keys) :]) and len(named) == len(given):
+            # values past the last name: separated by double tabs (some exporters, e.g.
+            # OpenSim's Rajagopal example data); pair the names with the non-empty values
+            return dict(zip(named, given, strict=True))
+        return dict(zip(keys, vals, strict=False))
+
+    def expected(lines: list[str]) -> int:  # NumFrames, to size the array
         try:
-            rows.append([float(v) if v.strip() else np.nan for v in f[2:]])
-        except ValueError as exc:
-            raise ValueError(f"{p}: line {n}: {exc}") from None
-        frames.append(f[0])
-        times.append(f[1])
-    if not rows:
+            return int(float(header_dict(lines).get("NumFrames", "")))
+        except (ValueError, OverflowError):
+            return 0
+
+    t = read_trc_text(p, expected)
+    hdr = header_dict(t.header)
+    labels = [s.strip() for s in t.header[3].split("\t")[2:] if s.strip()]
+    n_rows = len(t.values)
+    if not n_rows:
         raise ValueError(f"{p}: no data rows")
     declared = hdr.get("NumFrames", "").strip()
     if declared:
         try:
             n_declared = int(float(declared))
-        except ValueError:
+        except (ValueError, OverflowError):  # OverflowError: "inf", "1e999"
             raise ValueError(f"{p}: NumFrames {declared!r} is not a number") from None
-        if n_declared != len(rows):
+        if n_declared != n_rows:
             raise ValueError(
-                f"{p}: NumFrames says {n_declared} frames but the file holds {len(rows)} data "
+                f"{p}: NumFrames says {n_declared} frames but the file holds {n_rows} data "
                 "rows; the file is incomplete or was edited (fix NumFrames or restore the file)"
             )
     declared_m = hdr.get("NumMarkers", "").strip()
     if declared_m and declared_m.isdigit() and int(declared_m) != len(labels):
         raise ValueError(f"{p}: NumMarkers says {declared_m} but line 4 names {len(labels)}")
-    xyz = np.asarray(rows, dtype=np.float64).reshape(len(rows), len(labels), 3)
+    xyz = t.values.reshape(n_rows, len(labels), 3)
     try:
         rate = float(hdr["DataRate"]) if hdr.get("DataRate", "").strip() else None
     except ValueError:
@@ -521,20 +735,24 @@ def read_trc(path: str | os.PathLike[str]) -> Markers:
     if rate is not None and not (math.isfinite(rate) and rate > 0):
         raise ValueError(f"{p}: DataRate {rate} is not a positive frame rate")
     units = hdr.get("Units", "mm").strip() or "mm"
-    meta = _read_sidecar(p, len(rows), labels)
-    filled = _sidecar_filled(meta, labels, len(rows))
-    return Markers(xyz, labels, rate, units, {"trc": {"frames": frames, "times": times}}, filled)
+    meta = _read_sidecar(p, n_rows, labels)
+    filled = _sidecar_filled(meta, labels, n_rows)
+    src = {"trc": {"frames": t.frames, "times": t.times}}
+    return Markers(xyz, labels, rate, units, src, filled)
 
 
 def _write_trc(path: Path, m: Markers, xyz: np.ndarray) -> None:
+    from .text_stream import trc_rows
+
     n_frames, n_markers, _ = xyz.shape
     rate = float(m.rate)
     src = m.source.get("trc", {})
-    frames = src.get("frames") or [str(i + 1) for i in range(n_frames)]
-    times = src.get("times") or [f"{i / rate:.6f}" for i in range(n_frames)]
-    if len(frames) != n_frames:
-        frames = [str(i + 1) for i in range(n_frames)]
-        times = [f"{i / rate:.6f}" for i in range(n_frames)]
+    frames, times = src.get("frames"), src.get("times")
+    if frames is None or times is None or len(frames) != n_frames or len(times) != n_frames:
+        # new frame numbers and times (1-based frames, times from 0 at the rate)
+        frames, times = (lambda i: str(i + 1)), (lambda i: f"{i / rate:.6f}")
+    else:  # the source's fields, kept as written
+        frames, times = frames.__getitem__, times.__getitem__
     with atomic_write(path) as fh:
         fh.write(f"PathFileType\t4\t(X/Y/Z)\t{path.name}\n")
         fh.write(
@@ -547,9 +765,8 @@ def _write_trc(path: Path, m: Markers, xyz: np.ndarray) -> None:
         fh.write(
             "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(n_markers)) + "\n"
         )
-        for i in range(n_frames):
-            vals = ["" if np.isnan(v) else repr(float(v)) for v in xyz[i].ravel()]
-            fh.write(f"{frames[i]}\t{times[i]}\t" + "\t".join(vals) + "\n")
+        for text in trc_rows(xyz, frames, times):  # blocks of rows
+            fh.write(text)
 
 
 def read_csv(path: str | os.PathLike[str]) -> Markers:
@@ -558,7 +775,9 @@ def read_csv(path: str | os.PathLike[str]) -> Markers:
     A first line with non-numeric fields is a header (labels taken from ``<name>_x`` columns or
     the fields themselves); empty fields and ``NaN`` are missing. Rate and units come from the
     sidecar ``<file>.acm.json`` when there is one (``rate`` is None otherwise). Rows of
-    different widths and a last line without a line end (a cut file) are refused.
+    different widths and a last line without a line end (a cut file) are refused. The file is
+    read in blocks (:mod:`acm_rs.gapfill.text_stream`): memory is the array and one block, and
+    each value is the one ``float()`` gives for its field.
 
     Parameters
     ----------
@@ -570,55 +789,20 @@ def read_csv(path: str | os.PathLike[str]) -> Markers:
     Markers
         ``xyz`` of shape (n_frames, n_columns / 3, 3).
     """
+    from .text_stream import read_csv_text
+
     p = Path(path)
-    raw = _read_text(p, "CSV")
-    numbered = [(n, ln) for n, ln in enumerate(raw.splitlines(), start=1) if ln.strip()]
-    if not numbered:
-        raise ValueError(f"{p}: empty CSV file")
-    header = None
-    first = numbered[0][1].split(",")
-
-    def _num(s: str) -> bool:
-        try:
-            float(s) if s.strip() else None
-            return True
-        except ValueError:
-            return False
-
-    if not all(_num(f) for f in first):
-        header = [f.strip() for f in first]
-        numbered = numbered[1:]
-    if not numbered:
-        raise ValueError(f"{p}: no data rows after the header")
-    width = len(header) if header else len(numbered[0][1].split(","))
-    rows = []
-    ends = raw.endswith(("\n", "\r"))
-    for n, line in numbered:
-        f = line.split(",")
-        if n == numbered[-1][0] and not ends and len(f) == width:
-            raise ValueError(
-                f"{p}: the last line ({n}) has no line end: the file may be cut; if it is "
-                "complete, end it with a line break"
-            )
-        if len(f) != width:
-            cut = n == numbered[-1][0] and not raw.endswith(("\n", "\r"))
-            raise ValueError(
-                f"{p}: line {n} has {len(f)} fields, expected {width}"
-                + ("; the last line is cut: the file is incomplete" if cut else "")
-            )
-        try:
-            rows.append([float(v) if v.strip() else np.nan for v in f])
-        except ValueError as exc:
-            raise ValueError(f"{p}: line {n}: {exc}") from None
-    d = width
+    t = read_csv_text(p)
+    header = t.header
+    n_rows, d = t.values.shape
     if d % 3:
         raise ValueError(f"{p}: {d} columns is not a multiple of 3 (x, y, z per marker)")
-    xyz = np.asarray(rows, dtype=np.float64).reshape(len(rows), d // 3, 3)
+    xyz = t.values.reshape(n_rows, d // 3, 3)
     if header:
         labels = [h[:-2] if h.lower().endswith(("_x", ".x")) else h for h in header[::3]]
     else:
         labels = [f"M{i:02d}" for i in range(d // 3)]
-    meta = _read_sidecar(p, len(rows), None)
+    meta = _read_sidecar(p, n_rows, None)
     rate, units = None, "mm"
     if meta is not None:
         if header is None or meta.get("labels") == labels:
@@ -627,18 +811,20 @@ def read_csv(path: str | os.PathLike[str]) -> Markers:
             raise ValueError(f"{sidecar_path(p)} names {meta.get('labels')}, {p} {labels}")
         rate = None if meta.get("rate") is None else float(meta["rate"])
         units = meta.get("units") or "mm"
-    filled = _sidecar_filled(meta, labels, len(rows))
+    filled = _sidecar_filled(meta, labels, n_rows)
     return Markers(xyz, labels, rate, units, {"csv": {"header": header}}, filled)
 
 
 def _write_csv(path: Path, m: Markers, xyz: np.ndarray) -> None:
+    from .text_stream import csv_rows
+
     header = m.source.get("csv", {}).get("header")
     if not header:
         header = [f"{lab}_{a}" for lab in m.labels for a in "xyz"]
     with atomic_write(path) as fh:
         fh.write(",".join(header) + "\n")
-        for row in xyz.reshape(xyz.shape[0], -1):
-            fh.write(",".join("NaN" if np.isnan(v) else repr(float(v)) for v in row) + "\n")
+        for text in csv_rows(xyz):  # blocks of rows, values as repr, NaN missing
+            fh.write(text)
 
 
 _READERS = {".c3d": read_c3d, ".trc": read_trc, ".csv": read_csv}
