@@ -14,7 +14,10 @@ model; the detections are projected by it too):
   noise-free projections of those markers into the rig; on the true markers this returns the
   true joints to 1e-12 mm). Its time is reported apart from the peer's;
 * 95 % interval coverage (acm-rs only): fraction of true joint coordinates within
-  ``+-1.96 * result.joints_std``; EM iterations (acm-rs) and wall times;
+  ``+-1.96 * result.joints_std``, and of true marker coordinates within
+  ``+-1.96 * result.info["markers_std"]`` with the markers' model misfit (``track``'s
+  ``misfit``) and without it (``info["markers_fk"]``, ``info["markers_std_fk"]``, with their
+  errors); EM iterations (acm-rs) and wall times;
 * joint errors (and coverage) over the frames that make a case hard: the camera outage, the
   gap and the 40 frames after it, the speed burst. Warnings acm-rs raises are printed.
 
@@ -49,6 +52,10 @@ Run from the repository root (needs ``pip install aniposelib`` or the ``bench`` 
     python benches/compare_anipose.py [--cases dlc hard gap burst mm squares real real-hard
         real-gap real-mm real-squares]
         [--frames 240] [--seed 0] [--quick] [--no-peer] [--json PATH] [--pose PATH]
+        [--motion M] [--misfit auto|isotropic|full|off] [--inject-misfit MM]
+
+``--inject-misfit MM`` moves every true marker off the model by ``N(0, s_k² I₃)`` per frame
+(``s_k`` uniform in 0.5-1.5 x MM mm per marker) before projecting: a known model misfit.
 """
 
 from __future__ import annotations
@@ -264,6 +271,23 @@ def make_case(name: str, n_frames: int, seed: int, pose_path=None) -> Case:
     return case
 
 
+def inject_misfit(case: Case, mm: float, seed: int) -> None:
+    """A known model misfit: every true marker moves by ``N(0, s_k² I₃)`` per frame
+    (independent over frames), ``s_k`` uniform in ``0.5-1.5 x mm`` per marker; the
+    detections move by the projections' difference (noise and outliers kept)."""
+    rng = np.random.default_rng(seed + 77)
+    n_markers = case.markers.shape[1]
+    sd = rng.uniform(0.5, 1.5, n_markers) * mm / case.mm_per_unit
+    delta = rng.normal(size=case.markers.shape) * sd[None, :, None]
+    case.detections = case.detections + (
+        case.rig.project(case.markers + delta) - case.rig.project(case.markers)
+    )
+    case.markers = case.markers + delta
+    case.description += f"; markers off the model by {mm:g} mm (0.5-1.5 x per marker)"
+    median = np.median(sd) * case.mm_per_unit
+    case.notes.append(f"injected misfit SD per marker: median {median:.2f} mm")
+
+
 # -- metrics ---------------------------------------------------------------------------------
 def stats(err_mm: np.ndarray) -> dict:
     """Median / p95 / max of an error array (mm), NaN entries counted apart."""
@@ -330,10 +354,22 @@ def run_acm(case: Case, **options) -> dict:
         res, wall, warned = _track(case, normalization=norm, **options)
     err = errors(case, res.markers, res.joints)
     inside = np.abs(res.joints - case.joints) <= 1.96 * res.joints_std
+    info = res.info
+    fk, fk_std = info.get("markers_fk", res.markers), info.get("markers_std_fk")
+    if fk_std is None:
+        fk_std = info["markers_std"]
+    sd = np.asarray(info.get("misfit_sd", np.zeros(case.markers.shape[1]))) * case.mm_per_unit
     row = summarise(
         case,
         err,
         coverage95=float(inside.mean()),
+        marker_coverage95=float(
+            (np.abs(res.markers - case.markers) <= 1.96 * info["markers_std"]).mean()
+        ),
+        marker_error_fk_mm=stats(errors(case, fk, None)["marker"]),
+        marker_coverage95_fk=float((np.abs(fk - case.markers) <= 1.96 * fk_std).mean()),
+        misfit=info.get("misfit", "-"),
+        misfit_sd_mm={"median": float(np.median(sd)), "max": float(sd.max())},
         em_iterations=len(res.em_history),
         motion=res.info["motion"],
         motion_note=res.info["motion_note"],
@@ -464,6 +500,19 @@ def print_case(case: Case, acm: dict, peer: dict | None) -> None:
             p = peer["windows"][k]["joint_error_mm"][st] if peer else None
             label = f"  {w['label']}: joint {st}"
             print(f"   {label:36s} {_fmt(p):>10s} {_fmt(a):>10s} {_ratio(a, p):>12s}")
+    fk = acm["marker_error_fk_mm"]
+    print(
+        f"   {'markers without the misfit (mm)':36s} {'-':>10s} {'':>10s}   (median "
+        f"{fk['median']:.2f}, p95 {fk['p95']:.2f}, max {fk['max']:.2f}; 95 % coverage "
+        f"{100 * acm['marker_coverage95_fk']:.1f} %)"
+    )
+    sd = acm["misfit_sd_mm"]
+    print(
+        f"   {'markers: misfit SD (mm)':36s} {'-':>10s} {sd['median']:>10.2f}   (max "
+        f"{sd['max']:.2f}; misfit={acm['misfit']})"
+    )
+    cov = f"{100 * acm['marker_coverage95']:.1f} %"
+    print(f"   {'95 % coverage of markers':36s} {'-':>10s} {cov:>10s}")
     cov = f"{100 * acm['coverage95']:.1f} %"
     print(f"   {'95 % coverage of joints':36s} {'-':>10s} {cov:>10s}")
     for w in acm["windows"]:
@@ -501,7 +550,7 @@ def print_summary(rows: list[tuple[Case, dict, dict | None]]) -> None:
     print("\n== summary (errors in mm: anipose / acm-rs, ratio acm-rs/anipose) ==")
     head = (
         f"{'case':12s} {'marker median':>20s} {'joint median':>20s} {'joint p95':>20s} "
-        f"{'joint max':>22s} {'cover':>6s} {'EM':>4s} {'wall s':>16s}"
+        f"{'joint max':>22s} {'cover':>6s} {'m.cov':>6s} {'EM':>4s} {'wall s':>16s}"
     )
     print(head)
 
@@ -516,7 +565,8 @@ def print_summary(rows: list[tuple[Case, dict, dict | None]]) -> None:
         print(
             f"{case.name:12s} {cell('marker', 'median', acm, peer)} "
             f"{cell('joint', 'median', acm, peer)} {cell('joint', 'p95', acm, peer)} "
-            f"{cell('joint', 'max', acm, peer, 22)} {100 * acm['coverage95']:5.1f}% {em:>4s} "
+            f"{cell('joint', 'max', acm, peer, 22)} {100 * acm['coverage95']:5.1f}% "
+            f"{100 * acm['marker_coverage95']:5.1f}% {em:>4s} "
             f"{wall:>16s}"
         )
 
@@ -556,6 +606,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write every number to this file")
     ap.add_argument("--pose", help="the authors' pose.npy for the 'real' case")
     ap.add_argument("--motion", help="acm-rs's motion model (default: track's default)")
+    ap.add_argument("--misfit", help="acm-rs's marker misfit (default: track's default)")
+    ap.add_argument(
+        "--inject-misfit",
+        type=float,
+        default=0.0,
+        metavar="MM",
+        help="move every true marker off the model by N(0, s_k^2 I) per frame, s_k uniform "
+        "in 0.5-1.5 x MM (mm) per marker, before projecting (a known model misfit)",
+    )
     args = ap.parse_args(argv)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import representability
@@ -607,6 +666,8 @@ def main(argv: list[str] | None = None) -> int:
     warmed = False
     for name in args.cases:
         case = make_case(name, n_frames, args.seed, pose_path)
+        if args.inject_misfit > 0:
+            inject_misfit(case, args.inject_misfit, args.seed)
         peer = None
         if peer_ok:
             with warnings.catch_warnings():
@@ -616,7 +677,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"anipose warm-up (JAX + numba compilation): {warm:.1f} s")
                     warmed = True
                 peer = run_peer(case)
-        acm = run_acm(case, **({"motion": args.motion} if args.motion else {}))
+        options = {"motion": args.motion, "misfit": args.misfit}
+        acm = run_acm(case, **{k: v for k, v in options.items() if v})
         print_case(case, acm, peer)
         rows.append((case, acm, peer))
         report["cases"][name] = {

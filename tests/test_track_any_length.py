@@ -73,3 +73,16 @@ def test_options_the_bounded_path_cannot_take_are_refused(case):
     # the per-frame method keeps no moments: never routed
     res = acm_rs.track(rig, sk, det[:, :20], method="deterministic", memory_limit=1.0)
     assert res.info["method"] == "deterministic"
+
+
+def test_the_marker_misfit_is_not_estimated_on_the_bounded_path(case):
+    rig, sk, det, lik, _ = case
+    with pytest.raises(ValueError, match="misfit"):
+        acm_rs.track(rig, sk, det, likelihood=lik, memory_limit=1e6, misfit="full")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = acm_rs.track(
+            rig, sk, det[:, :120], likelihood=lik[:, :120], memory_limit=1e5, misfit="off",
+            motion="random_walk", max_iter=3,
+        )  # fmt: skip
+    assert res.info["bounded_memory"] and res.info["misfit"] == "off"

@@ -208,7 +208,11 @@ def test_marker_std_from_rust_equals_the_python_unscented_transform(tracked):
 
     from acm_rs.export._common import posterior_variance
 
-    rust = posterior_variance(tracked, "markers")
+    # the forward kinematics' SDs (info["markers_std"] holds the model misfit too)
+    rust = tracked.info["markers_std_fk"] ** 2
+    np.testing.assert_array_equal(
+        posterior_variance(tracked, "markers"), tracked.info["markers_std"] ** 2
+    )
     info = {k: v for k, v in tracked.info.items() if k != "markers_std"}
     python = posterior_variance(dataclasses.replace(tracked, info=info), "markers")
     # (the Python path adds a 1e-12 jitter to the covariance: ~1e-9 cm² here)

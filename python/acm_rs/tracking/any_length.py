@@ -67,10 +67,12 @@ def track(
         # an unknown motion is refused by track_in_memory
         need = in_memory_bytes(n_frames, n_state, motion) if motion in MOTION_ORDER else 0
         if need > limit:
+            # (the marker misfit needs the state covariances, which that path does not keep:
+            # its default is not applied there, "off" is accepted)
+            allowed = {k: (v, "off") if k == "misfit" else (v,) for k, v in _DEFAULTS.items()}
             unsupported = {
-                k: options[k] for k in ("noise_model", "stop", "tol", "dof")
-                if k in options and options[k] != _DEFAULTS[k]
-            }  # fmt: skip
+                k: options[k] for k in _DEFAULTS if k in options and options[k] not in allowed[k]
+            }
             if unsupported:
                 raise ValueError(
                     f"{n_frames} frames need ~{need / 2**30:.1f} GiB in memory (limit "
@@ -89,7 +91,9 @@ def track(
 
 _SIGNATURE = inspect.signature(track_in_memory)
 #: Defaults of the options the bounded-memory path cannot change.
-_DEFAULTS = {k: _SIGNATURE.parameters[k].default for k in ("noise_model", "stop", "tol", "dof")}
+_DEFAULTS = {
+    k: _SIGNATURE.parameters[k].default for k in ("noise_model", "stop", "tol", "dof", "misfit")
+}
 track.__doc__ = (track.__doc__ or "") + "\n" + (track_in_memory.__doc__ or "")
 track.__signature__ = _SIGNATURE.replace(  # type: ignore[attr-defined]
     parameters=[

@@ -905,6 +905,8 @@ def track_bounded(
         "status": arrays["status"], "markers_std": arrays["markers_std"],
         "params": arrays["params"], "converged": bool(run.get("em_converged", True)),
         "interrupted": False, "seconds": run["seconds"],
+        "misfit": "off", "misfit_note": "not estimated: the bounded-memory path keeps no state "
+        "covariances (markers are the skeleton's, markers_std without model misfit)",
     }  # fmt: skip
     info.setdefault("em_converged", info["converged"])
     history = list(info.get("em_history", []))

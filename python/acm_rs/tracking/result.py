@@ -39,7 +39,11 @@ class PoseResult:
         Posterior standard deviation of each joint coordinate (unscented transform of the
         state posterior through forward kinematics); zeros for ``method="deterministic"``.
     markers : numpy.ndarray, shape (T, M, 3)
-        Marker positions of the posterior mean pose.
+        Marker positions: the posterior mean of the true markers, forward kinematics of the
+        mean pose plus the estimated model misfit ``δ̂`` (``track(misfit=...)``,
+        :mod:`acm_rs.tracking.misfit`); with ``misfit="off"`` or ``Σ_k = 0`` the forward
+        kinematics alone, which ``info["markers_fk"]`` keeps. Their posterior SDs are
+        ``info["markers_std"]`` (FK only: ``info["markers_std_fk"]``).
     t : numpy.ndarray, shape (T, 3)
         Global translation per frame.
     r : numpy.ndarray, shape (T, n_bones, 3)
@@ -56,7 +60,9 @@ class PoseResult:
         innovation gate).
     info : dict
         ``method``, ``converged``, ``iterations``, ``tol``, ``params`` (learned ``mu0``,
-        ``V0``, ``Vz``, ``Vx_diag``), ``gated`` (mask of gated measurements), timings.
+        ``V0``, ``Vz``, ``Vx_diag``), ``gated`` (mask of gated measurements), timings;
+        ``misfit``, ``misfit_shape``, ``misfit_cov`` (M, 3, 3), ``misfit_sd`` (M,),
+        ``markers_fk``, ``markers_std_fk`` (the markers' model misfit).
     """
 
     skeleton: Skeleton
@@ -115,6 +121,7 @@ class PoseResult:
         -------
         joints : numpy.ndarray, shape (n, T, J, 3)
         markers : numpy.ndarray, shape (n, T, M, 3)
+            Forward kinematics of the sampled poses (without the markers' model misfit).
         """
         if self.state_cov is None:
             raise ValueError("this result has no posterior covariance (method='deterministic')")

@@ -21,6 +21,8 @@ from ..labels import labels_in_skeleton_order, mask_by_likelihood
 from ..learning import _pose_bounds, _to_state, check_scale, check_units, initial_poses
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
+from .misfit import MODES as MISFIT_MODES
+from .misfit import apply_misfit
 from .result import PoseResult
 
 #: Default innovation gate: probability mass of the chi-square distribution with 2 degrees of
@@ -482,6 +484,7 @@ def track_in_memory(
     dof: float = 4.0,
     motion: str = DEFAULT_MOTION,
     relinearize: int = 10,
+    misfit: str = "auto",
 ) -> PoseResult:
     """Reconstruct the poses of a recording in memory (ACM supp. sec. 4); what
     :func:`acm_rs.track` runs when the recording's moments fit its memory budget.
@@ -539,6 +542,14 @@ def track_in_memory(
         At most this many iterated posterior linearisations of a frame's update where the
         single unscented update of Alg. 6 does not hold (the first frame with detections
         after a stretch without any); 0 gives the paper's filter.
+    misfit : {"auto", "isotropic", "full", "off"}
+        Model misfit of the markers (issue 26 item 3, beyond the paper): the true marker is
+        ``FK(z) + δ`` with ``δ ~ N(0, Σ_k)`` per marker, ``Σ_k`` estimated from the
+        detections' cross-camera residuals (:mod:`acm_rs.tracking.misfit`), and
+        ``markers`` / ``info["markers_std"]`` are the posterior of the true markers
+        (``info["markers_fk"]``, ``info["markers_std_fk"]``: forward kinematics only;
+        ``info["misfit_sd"]``: per marker). ``"auto"`` (default): ``σ_k² I₃``, measured in
+        ``docs/tracking.md``; ``"off"``: FK markers only. Joints are not changed.
     progress : bool or None
         Print one line per EM iteration and a summary to stderr; None: only when stderr is
         a terminal (what the command line passes); default False (quiet).
@@ -592,6 +603,8 @@ def track_in_memory(
         raise ValueError(f"noise must be > 0, got {noise}")
     if motion not in MOTION_ORDER:
         raise ValueError(f"motion must be one of {sorted(MOTION_ORDER)}, got {motion!r}")
+    if misfit not in MISFIT_MODES:
+        raise ValueError(f"misfit must be one of {MISFIT_MODES}, got {misfit!r}")
     if int(relinearize) != relinearize or relinearize < 0:
         raise ValueError(f"relinearize must be an integer >= 0, got {relinearize}")
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
@@ -733,6 +746,10 @@ def track_in_memory(
             "EM interrupted (Ctrl-C); returning the posterior under the last parameters",
             file=sys.stderr,
         )
+    t_misfit = time.perf_counter()
+    apply_misfit(result, misfit)
+    result.info["seconds_misfit"] = time.perf_counter() - t_misfit
+    result.info["seconds"] = time.perf_counter() - t_start
     _warn_implausible_fit(result, fit_px)
     _warn_em(result, max_iter, ll_tol)
     if _on_terminal(progress):
