@@ -331,18 +331,29 @@ def check_processor(p: Path) -> None:
         )
 
 
-def _find_parameter(sec: bytes, group: str, name: str) -> tuple[int, int, int] | None:
-    """(byte offset of the value, type, number of values) of a parameter in a little-endian
-    parameter section, None if absent."""
-    pos, groups, found = 4, {}, []
+def _records(sec: bytes):
+    """The records of a little-endian parameter section, in order: ``(start, ident, link,
+    label)`` with ``link`` the offset of the record's link word (after its name) and
+    ``label`` its upper-case name; groups have a negative ``ident``."""
+    pos = 4
     while pos + 2 <= len(sec):
         n_chars = abs(int.from_bytes(sec[pos : pos + 1], "little", signed=True))
         if n_chars == 0:
-            break
+            return
         ident = int.from_bytes(sec[pos + 1 : pos + 2], "little", signed=True)
-        body = pos + 2 + n_chars
-        label = bytes(sec[pos + 2 : body]).decode("latin-1").upper()
-        step = int.from_bytes(sec[body : body + 2], "little", signed=True)
+        link = pos + 2 + n_chars
+        yield pos, ident, link, bytes(sec[pos + 2 : link]).decode("latin-1").upper()
+        step = int.from_bytes(sec[link : link + 2], "little", signed=True)
+        if step == 0:
+            return
+        pos = link + step
+
+
+def _find_parameter(sec: bytes, group: str, name: str) -> tuple[int, int, int] | None:
+    """(byte offset of the value, type, number of values) of a parameter in a little-endian
+    parameter section, None if absent."""
+    groups, found = {}, []
+    for _, ident, body, label in _records(sec):
         if ident < 0:
             groups[-ident] = label
         elif label == name:
@@ -350,9 +361,6 @@ def _find_parameter(sec: bytes, group: str, name: str) -> tuple[int, int, int] |
             kind = int.from_bytes(sec[q : q + 1], "little", signed=True)
             dims = list(sec[q + 2 : q + 2 + sec[q + 1]])
             found.append((ident, q + 2 + sec[q + 1], kind, int(np.prod(dims, dtype=np.int64))))
-        if step == 0:
-            break
-        pos = body + step
     for ident, at, kind, count in found:
         if groups.get(ident) == group:
             return at, kind, count
@@ -498,18 +506,7 @@ def _drop_group(head: bytearray, group: str) -> None:
     base = (head[0] - 1) * 512
     n_blocks = head[base + 2]
     sec = bytes(head[base : base + 512 * n_blocks])
-    recs, pos = [], 4  # (start, id, offset of the link word, name)
-    while pos + 2 <= len(sec):
-        n_chars = abs(int.from_bytes(sec[pos : pos + 1], "little", signed=True))
-        if n_chars == 0:
-            break
-        ident = int.from_bytes(sec[pos + 1 : pos + 2], "little", signed=True)
-        link = pos + 2 + n_chars
-        recs.append((pos, ident, link, sec[pos + 2 : link].decode("latin-1").upper()))
-        step = int.from_bytes(sec[link : link + 2], "little", signed=True)
-        if step == 0:
-            break
-        pos = link + step
+    recs = list(_records(sec))  # (start, id, offset of the link word, name)
     gid = [-r[1] for r in recs if r[1] < 0 and r[3] == group]
     if not gid:
         return
