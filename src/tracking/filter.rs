@@ -272,14 +272,16 @@ pub(crate) fn step<E: Emission + ?Sized>(
             .zip(&ws.scale)
             .map(|(&j, sc)| (x_t[j] - ws.xbar[j]) * sc),
     );
-    // Rows i and n + i (the sigma points z̄ ± √n L_i) become their scaled difference and sum:
-    // D = (Y₊ − Y₋)/√2 (the linear part, `C = L Dᵀ`) and E = (Y₊ + Y₋)/√2 (what no linear
-    // map explains). An orthogonal change of the 2n columns: `ỸỸᵀ` and the update are
-    // unchanged, and `W = [L, −L]/√2` becomes `[L, 0]`.
+    // Rows i and n + i (the sigma points z̄ ± √n L_i) become their scaled sum and difference:
+    // E = (Y₊ + Y₋)/√2 (what no linear map explains; rows 0..n of Ỹ) and D = (Y₊ − Y₋)/√2
+    // (the linear part, `C = L Dᵀ`; rows n..2n). An orthogonal change of the 2n columns:
+    // `ỸỸᵀ` and the update are unchanged, and `W = [L, −L]/√2` becomes `[0, L]` (see
+    // [`linear_update`] for why E comes first).
     let sq = (0.5 * inv).sqrt();
     for i in 0..n {
-        let (dst_d, rest) = ws.ytil[i * np..].split_at_mut(n * np);
-        let dst_e = &mut rest[..np];
+        let (dst_e, rest) = ws.ytil[i * np..].split_at_mut(n * np);
+        let dst_e = &mut dst_e[..np];
+        let dst_d = &mut rest[..np];
         let xp = &ws.x[i * n_x..(i + 1) * n_x];
         let xm = &ws.x[(n + i) * n_x..(n + i + 1) * n_x];
         for (q, &j) in ws.used.iter().enumerate() {
@@ -470,7 +472,7 @@ struct Update {
     /// Posterior mean (`ns`) and covariance (`ns × ns`, column-major).
     mu: Vec<f64>,
     v: Vec<f64>,
-    /// `s = M⁻¹ Ỹ ν̃`, whose first `n` entries are the update in the coordinates of `L`.
+    /// `s = M⁻¹ Ỹ ν̃`, whose last `n` entries are the update in the coordinates of `L`.
     s: Vec<f64>,
     log_lik: f64,
 }
@@ -478,11 +480,16 @@ struct Update {
 /// The Kalman update of the prior `(m̄, P = L̃ L̃ᵀ)` of the state (position `z` first, `n`
 /// entries, then e.g. velocity) under the whitened linear-Gaussian model
 /// `x̃ = x̂ + D L⁻¹ (z − z̄) + E ξ + ε` (`ξ, ε ~ N(0, I)`, `L` the leading `n × n` block of
-/// `L̃`), given `Ỹ = [Dᵀ; Eᵀ]` (`2n × n_p`, row-major) and `ν̃ = x̃ − x̂`: with
-/// `M = I + ỸỸᵀ`, `s = M⁻¹ Ỹ ν̃` and `W = L̃[:, :n]`, `μ = m̄ + W s[..n]` and
-/// `Ṽ = P − W (I − M⁻¹) Wᵀ = Uᵀ U + L̃[:, n:] L̃[:, n:]ᵀ` with `U = L_M⁻¹ [Wᵀ; 0]`
-/// (push-through form of Alg. 6 lines 19-26), and `ln N(x; x̂, S)` from `|S| = |V_x| |M|`
-/// and `ν̃ᵀν̃ − (Ỹν̃)ᵀ s` (without the `|V_x|` term, which the caller adds).
+/// `L̃`), given `Ỹ = [Eᵀ; Dᵀ]` (`2n × n_p`, row-major) and `ν̃ = x̃ − x̂`: with
+/// `M = I + ỸỸᵀ`, `s = M⁻¹ Ỹ ν̃` and `W = L̃[:, :n]`, `μ = m̄ + W s[n..]` and
+/// `Ṽ = P − W (I − (M⁻¹)_DD) Wᵀ = Uᵀ U + L̃[:, n:] L̃[:, n:]ᵀ` (push-through form of Alg. 6
+/// lines 19-26), and `ln N(x; x̂, S)` from `|S| = |V_x| |M|` and `ν̃ᵀν̃ − (Ỹν̃)ᵀ s` (without
+/// the `|V_x|` term, which the caller adds).
+///
+/// Why E first: with `L_M = [[L₁₁, 0], [L₂₁, L₂₂]]` the factor of `M`, `L₂₂ L₂₂ᵀ` is the Schur
+/// complement of the E block, `((M⁻¹)_DD)⁻¹`, so `U = L₂₂⁻¹ Wᵀ` (`n × ns`): a triangular
+/// solve with the `n × n` block instead of the whole `2n × 2n` factor (a quarter of the
+/// work), and `UᵀU` sums over `n` rows instead of `2n` (half).
 ///
 /// `l_full` is `L̃` (column-major `ns × ns`); `gram`, `u`, `b` are scratch (`gram` ends
 /// as the factor of `M`); the result goes to `out`, whose buffers are reused.
@@ -534,36 +541,43 @@ fn linear_update(
     let log_det_m = 2.0 * (0..m2).map(|i| lm[i * m2 + i].ln()).sum::<f64>();
     let maha = dot(nu, nu) - dot(b, &out.s);
     out.log_lik = -0.5 * (np as f64 * (2.0 * std::f64::consts::PI).ln() + log_det_m + maha);
-    // μ = m̄ + W s[..n], W = L̃[:, :n]
+    // μ = m̄ + W s[n..], W = L̃[:, :n]
     out.mu.clear();
     out.mu.extend_from_slice(mbar);
     for c in 0..n {
-        let sc = out.s[c];
+        let sc = out.s[n + c];
         for (m, l) in out.mu.iter_mut().zip(&l_full[c * ns..(c + 1) * ns]) {
             *m += l * sc;
         }
     }
-    // U = L_M⁻¹ [Wᵀ; 0] (2n × ns): column r holds row r of W, then zeros.
+    // L₂₂, the trailing n × n block of L_M, made contiguous (into `b`, free now)
+    b.clear();
+    b.resize(n * n, 0.0);
+    for c in 0..n {
+        b[c * n..(c + 1) * n].copy_from_slice(&lm[(n + c) * m2 + n..(n + c + 1) * m2]);
+    }
+    // U = L₂₂⁻¹ Wᵀ (n × ns): column r holds row r of W.
     u.clear();
-    u.resize(m2 * ns, 0.0);
+    u.resize(n * ns, 0.0);
     for r in 0..ns {
         for c in 0..n {
-            u[r * m2 + c] = l_full[c * ns + r];
+            u[r * n + c] = l_full[c * ns + r];
         }
     }
     // (columns independent: split between two threads when large)
-    if parallel && m2 * m2 * ns > 400_000 {
-        let (u0, u1) = u.split_at_mut(ns / 2 * m2);
+    if parallel && n * n * ns > 400_000 {
+        let (u0, u1) = u.split_at_mut(ns / 2 * n);
+        let l22: &[f64] = b;
         rayon::join(
-            || lower_solve_in_place(lm, m2, u0),
-            || lower_solve_in_place(lm, m2, u1),
+            || lower_solve_in_place(l22, n, u0),
+            || lower_solve_in_place(l22, n, u1),
         );
     } else {
-        lower_solve_in_place(lm, m2, u);
+        lower_solve_in_place(b, n, u);
     }
     out.v.clear();
     out.v.resize(ns * ns, 0.0);
-    at_a_into(u, m2, ns, &mut out.v, parallel);
+    at_a_into(u, n, ns, &mut out.v, parallel);
     if ns > n {
         // + L̃[:, n:] L̃[:, n:]ᵀ
         add_a_at(&l_full[n * ns..], ns, ns - n, &mut out.v);
@@ -732,7 +746,7 @@ fn relinearized<E: Emission + ?Sized>(
 }
 
 /// Mean squared whitened error of the linearisation in `ws.ytil` / `xhat` at the posterior
-/// mean of `up`: `g(μ)` against `x̂ + D s[..n]`, over the entries of `ws.used`.
+/// mean of `up`: `g(μ)` against `x̂ + D s[n..]`, over the entries of `ws.used`.
 fn linearisation_error<E: Emission + ?Sized>(
     em: &E,
     up: &Update,
@@ -747,7 +761,7 @@ fn linearisation_error<E: Emission + ?Sized>(
     eval(em, serial, &up.mu[..n], gx)?;
     let mut err = 0.0;
     for (q, &j) in used.iter().enumerate() {
-        let lin: f64 = (0..n).map(|i| ytil[i * np + q] * up.s[i]).sum();
+        let lin: f64 = (0..n).map(|i| ytil[(n + i) * np + q] * up.s[n + i]).sum();
         let e = (gx[j] - xhat[q]) / vx_eff[j].sqrt() - lin;
         err += e * e;
     }
@@ -756,7 +770,7 @@ fn linearisation_error<E: Emission + ?Sized>(
 
 /// Statistical linearisation of `g` by the unscented transform about `N(μ_j, V_j)` (position
 /// part), expressed for the update of the prior `(m̄, L̃)`: fills `ws.ytil` with
-/// `Ỹ = [Dᵀ; Eᵀ]` (whitened; `A = F L_j⁻¹` the slope, `D = A L`, `E` the residual's factor)
+/// `Ỹ = [Eᵀ; Dᵀ]` (whitened; `A = F L_j⁻¹` the slope, `D = A L`, `E` the residual's factor)
 /// and `xhat` with `x̂ = x̄_j + A (z̄ − μ_j)` for the entries of `ws.used`, and returns
 /// `ν̃ = (x − x̂) / √V_x`. With `drop_invisible`, entries that `g` cannot predict at some
 /// sigma point are first removed from `ws.used` (and returned to the caller by the changed
@@ -802,38 +816,38 @@ fn linearize_about<E: Emission + ?Sized>(
     if np == 0 {
         return Ok(None);
     }
-    let l = l_full.view((0, 0), (n, n));
-    let Some(g) = lj.solve_lower_triangular(&l.into_owned()) else {
+    if (0..n).any(|i| lj[(i, i)] == 0.0) {
         return Ok(None);
-    };
-    let diff = DVector::from_fn(n, |r, _| mbar[r] - mu_j[r]);
-    let Some(c) = lj.solve_lower_triangular(&diff) else {
-        return Ok(None);
-    };
+    }
+    // G = L_j⁻¹ L and c = L_j⁻¹ (z̄ − μ_j) by the column kernel (L: a contiguous copy)
+    let mut g = l_full.view((0, 0), (n, n)).into_owned();
+    lower_solve_in_place(lj.as_slice(), n, g.as_mut_slice());
+    let mut c = DVector::from_fn(n, |r, _| mbar[r] - mu_j[r]);
+    lower_solve_in_place(lj.as_slice(), n, c.as_mut_slice());
     ws.ytil.clear();
     ws.ytil.resize(m2 * np, 0.0);
-    // F (rows: sigma-point pairs, whitened) and E as in `step`, about (μ_j, V_j).
+    // F (rows: sigma-point pairs, whitened; stored as Fᵀ, np × n, so that each pair's row
+    // is written contiguously) and E as in `step`, about (μ_j, V_j).
     let sq = (0.5 * inv).sqrt();
-    let mut f = DMatrix::zeros(n, np);
+    let mut ft = DMatrix::zeros(np, n);
     for i in 0..n {
         let xp = &ws.x[i * n_x..(i + 1) * n_x];
         let xm = &ws.x[(n + i) * n_x..(n + i + 1) * n_x];
-        let dst_e = &mut ws.ytil[(n + i) * np..(n + i + 1) * np];
+        let dst_e = &mut ws.ytil[i * np..(i + 1) * np];
+        let dst_f = &mut ft.as_mut_slice()[i * np..(i + 1) * np];
         for (q, &j) in ws.used.iter().enumerate() {
             let scale = 1.0 / vx_eff[j].sqrt();
-            f[(i, q)] = (xp[j] - xm[j]) * scale * sq;
+            dst_f[q] = (xp[j] - xm[j]) * scale * sq;
             dst_e[q] = (xp[j] + xm[j] - 2.0 * ws.xbar[j]) * scale * sq;
         }
     }
-    // A = F L_j⁻¹ (whitened); D = A L, so Dᵀ = Gᵀ F with G = L_j⁻¹ L.
-    let d = g.transpose() * &f;
-    for i in 0..n {
-        for q in 0..np {
-            ws.ytil[i * np + q] = d[(i, q)];
-        }
-    }
+    // A = F L_j⁻¹ (whitened); D = A L, so Dᵀ = Gᵀ F with G = L_j⁻¹ L: row i of Dᵀ is
+    // column i of Fᵀ G.
+    let dt = &ft * &g;
+    ws.ytil[n * np..].copy_from_slice(dt.as_slice());
+    let f = ft;
     // x̂ = x̄_j + A (z̄ − μ_j); ν̃ = (x − x̂) / √V_x.
-    let shift = f.transpose() * c;
+    let shift = f * c;
     xhat.clear();
     let mut nu = DVector::zeros(np);
     for (q, &j) in ws.used.iter().enumerate() {
