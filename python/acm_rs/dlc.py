@@ -63,6 +63,21 @@ class LabelSet:
         return float(pcutoff), "given"
 
 
+def load_dlc_config(path: str | Path, key: str) -> dict:
+    """A DeepLabCut ``config.yaml`` as a dict; refused in one line when it is not YAML or has
+    no ``key`` (e.g. ``"scorer"``, ``"bodyparts"``)."""
+    import yaml
+
+    p = Path(path)
+    try:
+        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{p}: invalid YAML: {exc}") from None
+    if not isinstance(doc, dict) or key not in doc:
+        raise ValueError(f"{p}: not a DeepLabCut config.yaml (no {key!r})")
+    return doc
+
+
 def label_source(path: str | Path) -> str:
     """The tool that wrote a 2D label file: "sleap" for ``.slp`` and SLEAP analysis
     ``.h5``, else "deeplabcut" (DeepLabCut's tables, also written by Lightning Pose)."""

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import CameraRig
+from .dlc import load_dlc_config
 from .learning import triangulate
 from .rotation import rodrigues
 from .skeleton import Skeleton
@@ -142,15 +143,8 @@ def _clean_edges(
 def read_dlc_config(path: str | Path) -> KeypointGraph:
     """DeepLabCut ``config.yaml``: ``bodyparts`` (or ``multianimalbodyparts``) and
     ``skeleton``. Multi-animal ``uniquebodyparts`` (arena landmarks) are left out."""
-    import yaml
-
     p = Path(path)
-    try:
-        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{p}: invalid YAML: {exc}") from None
-    if not isinstance(doc, dict) or "bodyparts" not in doc:
-        raise ValueError(f"{p}: not a DeepLabCut config.yaml (no 'bodyparts')")
+    doc = load_dlc_config(p, "bodyparts")
     notes: list[str] = []
     if doc.get("multianimalproject"):
         kps = [str(b) for b in doc.get("multianimalbodyparts") or []]

@@ -703,18 +703,12 @@ def _files_by_camera(
 def read_dlc_config(folder: str | Path) -> dict | None:
     """A DeepLabCut project's ``config.yaml`` (``Task``, ``scorer``, ``bodyparts`` or
     ``multianimalbodyparts`` + ``individuals``, ``video_sets``), or None without one."""
-    import yaml
+    from .dlc import load_dlc_config
 
     p = Path(folder) / DLC_CONFIG
     if not p.is_file():
         return None
-    try:
-        doc = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{p}: invalid YAML: {exc}") from None
-    if not isinstance(doc, dict) or "scorer" not in doc:
-        raise ValueError(f"{p}: not a DeepLabCut config.yaml (no 'scorer')")
-    return doc
+    return load_dlc_config(p, "scorer")
 
 
 def dlc_bodyparts(doc: Mapping[str, Any]) -> list[str]:
