@@ -22,7 +22,9 @@ use crate::symmetry::SymmetryMap;
 use nalgebra::{DMatrix, DVector, Vector3};
 use rayon::prelude::*;
 
+pub mod elastic;
 mod lm;
+pub use elastic::ElasticFit;
 pub use lm::LmReport;
 
 /// What is optimised.
@@ -418,16 +420,20 @@ impl LearningProblem {
     }
 
     /// Normalised residuals of one frame's labelled points and their Jacobian with respect to
-    /// the frame's state `z` (rows: u and v of each label; columns: state entries).
-    fn frame_residual_jacobian(
+    /// the frame's state `z` (rows: u and v of each label; columns: state entries), followed by
+    /// one column per bone of `stretch_bones`: the derivative with respect to that bone's
+    /// log-length, `l_b ∂x/∂l_b` (the elastic segments of [`elastic`]).
+    pub(crate) fn frame_residual_jacobian(
         &self,
         lengths: &[f64],
         offsets: &[Vector3<f64>],
         z: &[f64],
         obs: &[f64],
+        stretch_bones: &[usize],
     ) -> (Vec<f64>, DMatrix<f64>) {
         let sk = &self.skeleton;
-        let (nm, np, ns) = (sk.n_markers(), sk.n_pose(), z.len());
+        let (nm, np, nz) = (sk.n_markers(), sk.n_pose(), z.len());
+        let (nb, ns) = (sk.n_bones(), nz + stretch_bones.len());
         let (t, r, dz) = self.decode(z);
         let jac = sk
             .forward_jacobian(&t, &r, Some(lengths), Some(offsets))
@@ -453,6 +459,12 @@ impl LearningProblem {
                             .map(|a| dp[a] * jac.d_pose[(3 * (nj + k) + a) * np + idx])
                             .sum();
                         rows.push(v * dz[i]);
+                    }
+                    for &b in stretch_bones {
+                        let v: f64 = (0..3)
+                            .map(|a| dp[a] * jac.d_lengths[(3 * (nj + k) + a) * nb + b])
+                            .sum();
+                        rows.push(v * lengths[b]);
                     }
                 }
             }
@@ -488,53 +500,9 @@ impl LearningProblem {
             .par_chunks_mut(ns)
             .zip(self.labels.par_chunks(per_frame))
             .map(|(z, obs)| {
-                let clip = |v: &mut [f64]| {
-                    for (i, e) in v.iter_mut().enumerate() {
-                        *e = e.clamp(lower[i], upper[i]);
-                    }
-                };
-                clip(z);
-                let cost = |z: &[f64]| -> f64 {
-                    let (r, _) = self.frame_residual_jacobian(&lengths, &offsets, z, obs);
-                    r.iter().map(|v| v * v).sum()
-                };
-                let mut lambda = 1e-3;
-                let mut it = 0;
-                while it < max_iter {
-                    it += 1;
-                    let (r, j) = self.frame_residual_jacobian(&lengths, &offsets, z, obs);
-                    let c0: f64 = r.iter().map(|v| v * v).sum();
-                    let jtj = j.transpose() * &j;
-                    let jtr = j.transpose() * DVector::from_column_slice(&r);
-                    let mut improved = false;
-                    for _ in 0..10 {
-                        let mut a = jtj.clone();
-                        for d in 0..ns {
-                            a[(d, d)] += lambda * jtj[(d, d)].max(1e-12);
-                        }
-                        let Some(ch) = a.cholesky() else {
-                            lambda *= 10.0;
-                            continue;
-                        };
-                        let step = ch.solve(&(-&jtr));
-                        let mut trial: Vec<f64> =
-                            z.iter().zip(step.iter()).map(|(a, b)| a + b).collect();
-                        clip(&mut trial);
-                        let c1 = cost(&trial);
-                        if c1 < c0 {
-                            let rel = (c0 - c1) / c0.max(1e-300);
-                            z.copy_from_slice(&trial);
-                            lambda = (lambda / 3.0).max(1e-9);
-                            improved = rel > 1e-12;
-                            break;
-                        }
-                        lambda *= 4.0;
-                    }
-                    if !improved {
-                        break;
-                    }
-                }
-                it
+                damped_lm(z, lower, upper, max_iter, |z| {
+                    self.frame_residual_jacobian(&lengths, &offsets, z, obs, &[])
+                })
             })
             .collect();
         Ok((out, iters))
@@ -583,6 +551,67 @@ impl LearningProblem {
             poses,
         })
     }
+}
+
+/// Levenberg-Marquardt on one small least-squares problem `min ‖r(w)‖²`, steps projected onto
+/// the box `[lower, upper]` (per entry): `f(w)` returns the residuals and their Jacobian
+/// (rows × entries). Marquardt's diagonal damping, λ ÷ 3 after a successful step and × 4 after
+/// a failed one; stops after `max_iter` iterations or when a step no longer lowers the cost.
+/// Returns the number of iterations.
+pub(crate) fn damped_lm<F>(
+    w: &mut [f64],
+    lower: &[f64],
+    upper: &[f64],
+    max_iter: usize,
+    f: F,
+) -> usize
+where
+    F: Fn(&[f64]) -> (Vec<f64>, DMatrix<f64>),
+{
+    let n = w.len();
+    let clip = |v: &mut [f64]| {
+        for (i, e) in v.iter_mut().enumerate() {
+            *e = e.clamp(lower[i], upper[i]);
+        }
+    };
+    clip(w);
+    let cost = |w: &[f64]| -> f64 { f(w).0.iter().map(|v| v * v).sum() };
+    let mut lambda = 1e-3;
+    let mut it = 0;
+    while it < max_iter {
+        it += 1;
+        let (r, j) = f(w);
+        let c0: f64 = r.iter().map(|v| v * v).sum();
+        let jtj = j.transpose() * &j;
+        let jtr = j.transpose() * DVector::from_column_slice(&r);
+        let mut improved = false;
+        for _ in 0..10 {
+            let mut a = jtj.clone();
+            for d in 0..n {
+                a[(d, d)] += lambda * jtj[(d, d)].max(1e-12);
+            }
+            let Some(ch) = a.cholesky() else {
+                lambda *= 10.0;
+                continue;
+            };
+            let step = ch.solve(&(-&jtr));
+            let mut trial: Vec<f64> = w.iter().zip(step.iter()).map(|(a, b)| a + b).collect();
+            clip(&mut trial);
+            let c1 = cost(&trial);
+            if c1 < c0 {
+                let rel = (c0 - c1) / c0.max(1e-300);
+                w.copy_from_slice(&trial);
+                lambda = (lambda / 3.0).max(1e-9);
+                improved = rel > 1e-12;
+                break;
+            }
+            lambda *= 4.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    it
 }
 
 #[cfg(test)]

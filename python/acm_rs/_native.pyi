@@ -114,6 +114,17 @@ class NativeLearning:
     def fit_poses_lm(
         self, x: F64, lower: F64, upper: F64, max_iter: int
     ) -> tuple[F64, list[int]]: ...
+    def fit_poses_elastic(
+        self,
+        x: F64,
+        lower: F64,
+        upper: F64,
+        stretch_bones: I64,
+        stretch_sd: F64,
+        stretch0: F64,
+        noise_px: float,
+        max_iter: int,
+    ) -> tuple[F64, F64, F64, F64, F64, list[int], list[int]]: ...
     def fit_full_lm(
         self,
         x: F64,

@@ -110,6 +110,60 @@ impl PyLearning {
         Ok((out(py, xo, &[n])?, it))
     }
 
+    /// E-step of the elastic-segment EM (`crate::learning::elastic`): every frame's MAP state
+    /// and log-stretch with their Laplace statistics → `(x, stretch (F, E), stretch_var
+    /// (F, E), sq_px (F,), dof (F,), n_px (F,), iterations)`, GIL released.
+    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    fn fit_poses_elastic<'py>(
+        &self,
+        py: Python<'py>,
+        x: Arr<'py>,
+        lower: Arr<'py>,
+        upper: Arr<'py>,
+        stretch_bones: IArr<'py>,
+        stretch_sd: Arr<'py>,
+        stretch0: Arr<'py>,
+        noise_px: f64,
+        max_iter: usize,
+    ) -> PyResult<(
+        Out<'py>,
+        Out<'py>,
+        Out<'py>,
+        Out<'py>,
+        Out<'py>,
+        Vec<usize>,
+        Vec<usize>,
+    )> {
+        let xs = view(&x, "x", &[Some(self.inner.n_params())])?;
+        let lo = view(&lower, "lower", &[None])?;
+        let hi = view(&upper, "upper", &[None])?;
+        let bones: Vec<usize> = view(&stretch_bones, "stretch_bones", &[None])?
+            .iter()
+            .map(|&b| usize::try_from(b))
+            .collect::<Result<_, _>>()
+            .map_err(|_| pyo3::exceptions::PyValueError::new_err("negative bone index"))?;
+        let ne = bones.len();
+        let f = self.inner.n_frames();
+        let sd = view(&stretch_sd, "stretch_sd", &[Some(ne)])?;
+        let s0 = view(&stretch0, "stretch0", &[Some(f), Some(ne)])?;
+        let fit = py
+            .detach(|| {
+                self.inner
+                    .fit_poses_elastic(xs, lo, hi, &bones, sd, s0, noise_px, max_iter)
+            })
+            .map_err(to_py)?;
+        let n = fit.x.len();
+        Ok((
+            out(py, fit.x, &[n])?,
+            out(py, fit.stretch, &[f, ne])?,
+            out(py, fit.stretch_var, &[f, ne])?,
+            out(py, fit.sq_px, &[f])?,
+            out(py, fit.dof, &[f])?,
+            fit.n_px,
+            fit.iterations,
+        ))
+    }
+
     /// Levenberg-Marquardt on the whole problem (Schur complement over the frames, box
     /// bounds, optional Gaussian prior `w (x − c)` on the skeleton parameters) →
     /// `(x, iterations, value before, value after, message)`, GIL released. Values include
