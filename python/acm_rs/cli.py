@@ -100,6 +100,11 @@ def _cmd_learn(args: argparse.Namespace) -> int:
         symmetric=not args.no_symmetry, marker_names=labels.bodyparts, progress=None,
         likelihood=labels.likelihood, pcutoff=pcutoff,
     )  # fmt: skip
+    if args.elastic or skeleton.stretch_sd.any():
+        from .elastic import add_stretch
+
+        res, fit = add_stretch(res, "all" if args.elastic else None)
+        print(fit.summary())
     out = Path(args.output)
     files = res.save(out.with_suffix(""))
     print(res.summary())
@@ -270,6 +275,12 @@ def build_parser() -> argparse.ArgumentParser:
         "used whole",
     )  # fmt: skip
     lp.add_argument("--no-symmetry", action="store_true", help="do not enforce left/right symmetry")
+    lp.add_argument(
+        "--elastic", action="store_true",
+        help="learn elastic segments for every bone (per-frame lengths around learned means, "
+        "SDs by EM; for a lab's sparse keypoints). A model with elastic bones relearns them "
+        "without this flag",
+    )  # fmt: skip
     lp.add_argument("-o", "--output", help="learned skeleton TOML to write")
     lp.add_argument("--plots", help="folder for the reprojection and skeleton figures")
     lp.add_argument("--overwrite", action="store_true", help="replace existing outputs")

@@ -7,7 +7,9 @@ the same cameras and the same labels:
 * ``model``: the skeleton fitted per frame (eq. 9, lengths and offsets fixed; the per-frame
   Levenberg-Marquardt of :func:`acm_rs.learning.learn_skeleton` with ``lm_iter=0``), or with
   ``relearn=True`` the skeleton learned again without the held-out camera first (nothing of
-  that camera enters the prediction);
+  that camera enters the prediction). A skeleton with elastic segments (``stretch_sd``,
+  :mod:`acm_rs.elastic`) is fitted with per-frame bone lengths around its means, from the rigid
+  fit's poses;
 * ``triangulation``: plain linear (DLT) triangulation of each keypoint from the other cameras
   (:func:`acm_rs.learning.triangulate`), as a tool without a body model would.
 
@@ -29,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from .camera import CameraRig
+from .elastic import learn_stretch, project_stretched
 from .learning import learn_skeleton, triangulate
 from .skeleton import Skeleton
 
@@ -159,6 +162,20 @@ def _table(model: np.ndarray, tri: np.ndarray, index: list[str], axis: tuple[int
     return pd.DataFrame.from_dict(rows, orient="index")
 
 
+def _elastic_fold(rig, skeleton, sub, t, r, learn_sd: bool) -> np.ndarray:
+    """The fold's frames fitted with elastic segments, from the rigid fit's poses, projected
+    into every camera ``(n_cams, F, K, 2)``. The label noise is learned from the fold's
+    cameras; the stretch SDs too with ``learn_sd`` (else the skeleton's)."""
+    bones = skeleton.elastic_bones if skeleton.stretch_sd.any() else "all"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fit = learn_stretch(
+            rig, skeleton, sub, bones=bones, init=(t, r), learn_sd=learn_sd,
+            learn_lengths=learn_sd,
+        )  # fmt: skip
+    return project_stretched(rig, fit.skeleton, fit.t, fit.r, fit.lengths)
+
+
 def _labels_array(labels, bodyparts):
     if hasattr(labels, "points") and hasattr(labels, "bodyparts"):
         return (np.asarray(labels.points, dtype=np.float64), list(labels.bodyparts),
@@ -178,6 +195,7 @@ def evaluate(
     pcutoff: float = 0.0,
     relearn: bool = False,
     body_weight: float | None = None,
+    elastic: bool | None = None,
 ) -> Evaluation:
     """Leave-one-camera-out reprojection error of the skeleton model and of triangulation.
 
@@ -198,6 +216,11 @@ def evaluate(
         strict cross-validation of the whole method). Default: the given skeleton's lengths.
     body_weight : float, optional
         For ``relearn`` with weight-proportional bone-length priors.
+    elastic : bool, optional
+        Fit each frame with elastic segments (:mod:`acm_rs.elastic`: per-frame bone lengths
+        around the means, with the skeleton's ``stretch_sd``; with ``relearn`` the SDs are
+        learned again without the held-out camera). Default: when the skeleton has elastic
+        bones. ``True`` with a rigid skeleton learns SDs for every bone in each fold.
 
     Returns
     -------
@@ -234,6 +257,8 @@ def evaluate(
     model_err = np.full((n_cams, n_frames, k), np.nan)
     tri_err = np.full((n_cams, n_frames, k), np.nan)
     fitted = {}
+    if elastic is None:
+        elastic = bool(skeleton.stretch_sd.any())
     for c in range(n_cams):
         others = lab.copy()
         others[c] = np.nan
@@ -261,14 +286,17 @@ def evaluate(
                     scale_to_labels=False, length_prior_sd=None,
                 )  # fmt: skip
                 sk = skeleton
-        px = sk.project(rig, res.t, res.r)[c]  # (F_ok, K, 2)
+        if elastic:
+            px = _elastic_fold(rig, sk, sub, res.t, res.r, relearn or not sk.stretch_sd.any())[c]
+        else:
+            px = sk.project(rig, res.t, res.r)[c]  # (F_ok, K, 2)
         err = np.linalg.norm(px - lab[c, ok], axis=-1)
         model_err[c, ok] = np.where(target[ok], err, np.nan)
     cams = [cam.name or str(i) for i, cam in enumerate(rig)]
     per_kp = _table(model_err, tri_err, names, (0, 1))
     per_cam = _table(model_err, tri_err, cams, (1, 2))
     info = {
-        "frames": n_frames, "fitted_frames": fitted, "relearn": relearn,
+        "frames": n_frames, "fitted_frames": fitted, "relearn": relearn, "elastic": elastic,
         "seconds": time.perf_counter() - start,
     }  # fmt: skip
     return Evaluation(names, cams, model_err, tri_err, per_kp, per_cam, info)

@@ -263,6 +263,14 @@ def step_learn(config: ProjectConfig, overwrite: bool = False) -> Path:
         marker_names=labels.bodyparts, progress=None, likelihood=labels.likelihood,
         pcutoff=pcutoff,
     )  # fmt: skip
+    if generic.stretch_sd.any():  # a model with elastic segments: learn their SDs again
+        from .elastic import add_stretch
+
+        res, fit = add_stretch(res)
+        _say(
+            f"learn: elastic segments, EM {fit.iterations} iterations, label noise "
+            f"{fit.noise_px:.2f} px, {len(res.skeleton.elastic_bones)} elastic bones"
+        )
     res.skeleton.save(out)
     prov.write_record(out, fresh)
     _say(

@@ -133,6 +133,7 @@ class Skeleton:
         name: str = "skeleton",
         units: str = "",
         explicit_frames: bool = False,
+        stretch_sd: np.ndarray | None = None,
     ) -> None:
         self._joint_names = _names(joint_names, "joint")
         self._marker_names = _names(marker_names, "marker")
@@ -149,6 +150,14 @@ class Skeleton:
         self.units = units
         # rest frames given explicitly (not derivable from `up`): saved with the skeleton
         self._explicit_frames = bool(explicit_frames)
+        n_bones = int(native.n_bones)
+        sd = np.zeros(n_bones) if stretch_sd is None else np.asarray(stretch_sd, np.float64)
+        if sd.shape != (n_bones,) or not np.all(np.isfinite(sd)) or np.any(sd < 0):
+            raise ValueError(
+                f"stretch_sd must be {n_bones} finite values >= 0 (one per bone), got {sd}"
+            )
+        self._stretch_sd = sd.copy()
+        self._stretch_sd.setflags(write=False)
         for c in self._constraints:
             self.bone_index(c.bone)
         for arr in (self._parents, self._marker_joints, self._joint_limits, self._marker_bounds):
@@ -196,6 +205,7 @@ class Skeleton:
         rest_frames: np.ndarray | None = None,
         bone_links: np.ndarray | None = None,
         link_order: Sequence[int] | np.ndarray | None = None,
+        stretch_sd: Mapping[str, float] | np.ndarray | None = None,
     ) -> Skeleton:
         """Build a skeleton from joint and marker positions in a rest pose (all ``r = 0``).
 
@@ -296,6 +306,7 @@ class Skeleton:
             name=name,
             units=units,
             explicit_frames=frames is not None,
+            stretch_sd=_stretch_array(stretch_sd, bone_names),
         )
 
     def with_parameters(
@@ -364,6 +375,7 @@ class Skeleton:
             name=self.name,
             units=self.units,
             explicit_frames=self._explicit_frames,
+            stretch_sd=self._stretch_sd,
         )
 
     # -- structure --------------------------------------------------------------------------
@@ -503,6 +515,26 @@ class Skeleton:
     def joint_limits(self) -> np.ndarray:
         """(n_bones, 3, 2) ``[lower, upper]`` per Rodrigues component (rad); +-inf if unbounded."""
         return self._joint_limits
+
+    @property
+    def stretch_sd(self) -> np.ndarray:
+        """``(n_bones,)`` SD of each bone's log-length over frames (elastic segments, issue 28;
+        dimensionless: 0.1 is a bone whose length varies by ~10 % around its mean). 0: rigid,
+        as in the ACM models. Learned by :func:`acm_rs.elastic.learn_stretch`."""
+        return self._stretch_sd
+
+    @property
+    def elastic_bones(self) -> np.ndarray:
+        """Indices of the bones with ``stretch_sd > 0``."""
+        return np.flatnonzero(self._stretch_sd > 0)
+
+    def with_stretch(self, stretch_sd: Mapping[str, float] | np.ndarray | None) -> Skeleton:
+        """A copy with new stretch SDs: ``(n_bones,)`` or ``{bone name: SD}`` (others 0);
+        ``None`` makes every bone rigid."""
+        out = self._copy_with(self._native)
+        out._stretch_sd = _stretch_array(stretch_sd, self.bone_names)
+        out._stretch_sd.setflags(write=False)
+        return out
 
     @property
     def fixed_pose_mask(self) -> np.ndarray:
@@ -744,6 +776,12 @@ class Skeleton:
             )
         doc["joint_limits"] = lim_entries
         doc["symmetry"] = {k: [list(p) for p in v] for k, v in self._symmetry.items()}
+        if self._stretch_sd.any():
+            doc["elastic"] = [
+                {"bone": n, "sd": _clean(v)}
+                for n, v in zip(self.bone_names, self._stretch_sd, strict=True)
+                if v > 0
+            ]
         doc["bone_length_constraints"] = [
             {k: v for k, v in vars(c).items() if v is not None} for c in self._constraints
         ]
@@ -815,6 +853,14 @@ class Skeleton:
         }
         constraints = [BoneLengthConstraint(**c) for c in doc.get("bone_length_constraints", [])]
         links, link_order = _links_from_doc(doc.get("links"), jn, parents, source)
+        stretch = {}
+        for i, entry in enumerate(doc.get("elastic", [])):
+            if not isinstance(entry, Mapping) or set(entry) != {"bone", "sd"}:
+                raise ValueError(
+                    f"{source}: elastic[{i}] must be a table with keys 'bone' and 'sd', "
+                    f"got {entry!r}"
+                )
+            stretch[entry["bone"]] = entry["sd"]
         return cls.from_rest_pose(
             jn,
             parents,
@@ -832,6 +878,7 @@ class Skeleton:
             rest_frames=rest_frames,
             bone_links=links,
             link_order=link_order,
+            stretch_sd=stretch or None,
         )
 
     @classmethod
@@ -910,10 +957,28 @@ class SymmetryMap:
 # -- helpers ---------------------------------------------------------------------------------
 _DOC_KEYS = {
     "format", "version", "name", "units", "angle_units", "up", "symmetry", "joints", "markers",
-    "joint_limits", "bone_length_constraints", "links",
+    "joint_limits", "bone_length_constraints", "links", "elastic",
 }  # fmt: skip
 _JOINT_KEYS = {"name", "parent", "position", "frame"}
 _MARKER_KEYS = {"name", "joint", "position", "bounds"}
+
+
+def _stretch_array(
+    stretch_sd: Mapping[str, float] | np.ndarray | None, bone_names: Sequence[str]
+) -> np.ndarray:
+    """Stretch SDs as ``(n_bones,)``, from an array or ``{bone name: SD}`` (others 0)."""
+    n = len(bone_names)
+    if stretch_sd is None:
+        return np.zeros(n)
+    if isinstance(stretch_sd, Mapping):
+        out = np.zeros(n)
+        for name, v in stretch_sd.items():
+            out[_lookup(bone_names, name, "bone")] = float(v)
+    else:
+        out = np.array(stretch_sd, dtype=np.float64)
+    if out.shape != (n,) or not np.all(np.isfinite(out)) or np.any(out < 0):
+        raise ValueError(f"stretch SDs must be {n} finite values >= 0 (one per bone), got {out}")
+    return out
 
 
 def _check_keys(doc: Mapping, allowed: set[str], source: str, where: str) -> None:

@@ -7,6 +7,7 @@ windows, the exact streaming smoother), with the same :class:`PoseResult` back.
 from __future__ import annotations
 
 import inspect
+import warnings
 
 import numpy as np
 
@@ -58,6 +59,15 @@ def track(
     """
     if memory_limit is not None and not memory_limit > 0:
         raise ValueError(f"memory_limit must be > 0 bytes, got {memory_limit}")
+    if skeleton.stretch_sd.any():
+        names = [skeleton.bone_names[b] for b in skeleton.elastic_bones]
+        warnings.warn(
+            f"the skeleton has elastic segments ({len(names)} bones, e.g. {names[0]!r}); the "
+            "tracker keeps every bone at its mean length (per-frame lengths are fitted by "
+            "acm_rs.elastic for labelled frames and evaluate, not yet tracked)",
+            UserWarning,
+            stacklevel=2,
+        )
     method = options.get("method", "ukf")
     if method == "ukf" and np.ndim(detections) == 4:
         motion = options.get("motion", DEFAULT_MOTION)
