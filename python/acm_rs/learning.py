@@ -361,7 +361,7 @@ class LearnedSkeleton:
             away from the generic proportions at the fitted size (a joint that slid along a
             weakly determined chain); ``noise_px``: the label noise SD estimated from the
             median error (2D Gaussian); ``outliers``: ``[(camera, frame, marker, error_px)]``
-            labels above ``outlier_sigma`` x that noise, worst first.
+            labels above ``outlier_sigma`` x that noise (and 0.5 px), worst first.
         """
         sk = self.skeleton
         out: dict = {"bones_on_bounds": [], "offsets_on_bounds": [], "off_proportions": []}
@@ -395,7 +395,9 @@ class LearnedSkeleton:
         ok = np.isfinite(err)
         sigma = float(np.median(err[ok]) / np.sqrt(2.0 * np.log(2.0))) if ok.any() else np.nan
         out["noise_px"] = sigma
-        idx = np.argwhere(ok & (err > outlier_sigma * sigma))
+        # (and above half a pixel: a model that fits exactly, e.g. elastic segments on labels
+        # that are reprojections, has ~0 noise, and 1e-8 px is nothing to look at)
+        idx = np.argwhere(ok & (err > outlier_sigma * sigma) & (err > 0.5))
         order = np.argsort(-err[tuple(idx.T)]) if idx.size else np.array([], int)
         names = self.rig.names
         out["outliers"] = [
