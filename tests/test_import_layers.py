@@ -54,6 +54,7 @@ LAYERS: dict[str, int] = {
     "acm_rs.plots": 3,
     # 2: the algorithms and the types they return (PoseResult, CalibrationResult, FillResult).
     "acm_rs.learning": 2,
+    "acm_rs.elastic": 2,
     "acm_rs.tracking": 2,
     "acm_rs.calibration": 2,
     "acm_rs.gapfill": 2,
