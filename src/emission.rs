@@ -170,6 +170,8 @@ struct Scratch {
     ws: Option<crate::skeleton::FkWorkspace>,
     pose: Vec<f64>,
     markers: Vec<f64>,
+    /// Bone lengths of a state with elastic bones ([`StateMap::with_stretch`]).
+    lengths: Vec<f64>,
 }
 
 thread_local! {
@@ -353,7 +355,12 @@ pub fn emission_batch_into(
     let one = |o: &mut [f64], z: &[f64]| {
         SCRATCH.with(|cell| {
             let mut guard = cell.borrow_mut();
-            let Scratch { ws, pose, markers } = &mut *guard;
+            let Scratch {
+                ws,
+                pose,
+                markers,
+                lengths,
+            } = &mut *guard;
             if !ws.as_ref().is_some_and(|w| w.fits(skeleton)) {
                 *ws = Some(skeleton.workspace());
             }
@@ -361,10 +368,17 @@ pub fn emission_batch_into(
             pose.resize(skeleton.n_pose(), 0.0);
             markers.resize(3 * skeleton.n_markers(), 0.0);
             map.to_pose_into(z, pose, None);
+            let l = if map.stretch_bones().is_empty() {
+                skeleton.lengths()
+            } else {
+                lengths.resize(skeleton.n_bones(), 0.0);
+                map.lengths_into(z, skeleton.lengths(), lengths);
+                lengths.as_slice()
+            };
             skeleton.forward_flat_into(
                 &pose[..3],
                 &pose[3..],
-                skeleton.lengths(),
+                l,
                 skeleton.offsets(),
                 ws,
                 None,

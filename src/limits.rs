@@ -79,13 +79,16 @@ pub enum EntryMap {
 }
 
 /// Map between the state `z` (free entries, normalised, optionally erf-constrained) and the
-/// full pose `[t, r]`.
+/// full pose `[t, r]`, optionally followed by the log-stretch of elastic bones (issue 28:
+/// `l_b exp(z)`, see [`StateMap::with_stretch`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct StateMap {
     n_pose: usize,
     free: Vec<usize>,
     maps: Vec<EntryMap>,
     template: Vec<f64>,
+    /// Elastic bones whose log-stretch follows the pose entries in the state.
+    stretch: Vec<usize>,
 }
 
 impl StateMap {
@@ -158,12 +161,54 @@ impl StateMap {
             free,
             maps,
             template,
+            stretch: Vec::new(),
         })
     }
 
-    /// Dimension of the state (number of free pose entries).
+    /// The same map with one more state entry per elastic bone: its log-stretch `s_b`, the
+    /// bone's length in that state being `l_b exp(s_b)` (elastic segments, issue 28; beyond
+    /// the paper). The entries follow the pose entries, in the order given.
+    ///
+    /// # Errors
+    /// Invalid error for a bone index out of range or listed twice.
+    pub fn with_stretch(mut self, bones: &[usize]) -> Result<Self> {
+        let nb = (self.n_pose - 3) / 3;
+        let mut seen = vec![false; nb];
+        for &b in bones {
+            if b >= nb {
+                return Err(AcmError::Invalid(format!(
+                    "elastic bone {b} does not exist (the skeleton has {nb} bones)"
+                )));
+            }
+            if std::mem::replace(&mut seen[b], true) {
+                return Err(AcmError::Invalid(format!(
+                    "elastic bone {b} is listed twice"
+                )));
+            }
+        }
+        self.stretch = bones.to_vec();
+        Ok(self)
+    }
+
+    /// Dimension of the state: the free pose entries, then one log-stretch per elastic bone.
     pub fn n_state(&self) -> usize {
+        self.free.len() + self.stretch.len()
+    }
+    /// Number of pose entries of the state (the first ones).
+    pub fn n_pose_state(&self) -> usize {
         self.free.len()
+    }
+    /// The elastic bones, in the order of their state entries (after the pose entries).
+    pub fn stretch_bones(&self) -> &[usize] {
+        &self.stretch
+    }
+    /// Bone lengths of a state: `base` with each elastic bone times `exp(s_b)`.
+    pub fn lengths_into(&self, z: &[f64], base: &[f64], out: &mut [f64]) {
+        out.copy_from_slice(base);
+        let nf = self.free.len();
+        for (e, &b) in self.stretch.iter().enumerate() {
+            out[b] *= z[nf + e].exp();
+        }
     }
     /// Length of the full pose vector.
     pub fn n_pose(&self) -> usize {
@@ -219,8 +264,9 @@ impl StateMap {
         Ok((pose, d))
     }
 
-    /// Full pose → state (inverse map). Fixed entries are ignored; bounded entries outside
-    /// their limits are moved just inside (see [`erf_map_inverse`]).
+    /// Full pose → state (inverse map), with log-stretch 0 for elastic bones. Fixed entries
+    /// are ignored; bounded entries outside their limits are moved just inside (see
+    /// [`erf_map_inverse`]).
     ///
     /// # Errors
     /// Shape error for a wrong pose length, non-finite error for NaN/inf.
@@ -235,6 +281,7 @@ impl StateMap {
                 EntryMap::Linear { scale } => pose[idx] / scale,
                 EntryMap::Bounded { lo, hi } => erf_map_inverse(pose[idx], lo, hi),
             })
+            .chain(std::iter::repeat_n(0.0, self.stretch.len()))
             .collect())
     }
 }
@@ -243,6 +290,36 @@ impl StateMap {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn stretch_entries_follow_the_pose_and_scale_their_bones() {
+        let inf = f64::INFINITY;
+        let norm = Normalization::default();
+        let nb = 4;
+        let base =
+            StateMap::new(nb, &vec![-inf; 3 * nb], &vec![inf; 3 * nb], &norm, false).unwrap();
+        let map = base.clone().with_stretch(&[3, 1]).unwrap();
+        assert_eq!(map.n_state(), base.n_state() + 2);
+        assert_eq!(map.n_pose_state(), base.n_state());
+        let mut z: Vec<f64> = (0..map.n_state()).map(|i| 0.01 * i as f64).collect();
+        let nf = map.n_pose_state();
+        z[nf] = 0.2; // bone 3
+        z[nf + 1] = -0.1; // bone 1
+                          // the pose ignores the stretch entries
+        assert_eq!(map.to_pose(&z).unwrap(), base.to_pose(&z[..nf]).unwrap());
+        let mut len = vec![0.0; nb];
+        map.lengths_into(&z, &[1.0, 2.0, 3.0, 4.0], &mut len);
+        let want = [1.0, 2.0 * (-0.1f64).exp(), 3.0, 4.0 * 0.2f64.exp()];
+        for (a, b) in len.iter().zip(want) {
+            assert!((a - b).abs() < 1e-15);
+        }
+        // inverse: the mean lengths (log-stretch 0)
+        let back = map.from_pose(&map.to_pose(&z).unwrap()).unwrap();
+        assert_eq!(back.len(), map.n_state());
+        assert_eq!(&back[nf..], &[0.0, 0.0]);
+        assert!(base.clone().with_stretch(&[1, 1]).is_err());
+        assert!(base.with_stretch(&[4]).is_err());
+    }
 
     #[test]
     fn erfinv_inverts_erf() {

@@ -76,7 +76,12 @@ class NativeSymmetry:
 
 class NativeStateMap:
     def __init__(
-        self, lower: F64, upper: F64, norm: tuple[float, float, float, float], enforce: bool
+        self,
+        lower: F64,
+        upper: F64,
+        norm: tuple[float, float, float, float],
+        enforce: bool,
+        stretch: I64 | None = None,
     ) -> None: ...
     @property
     def free_indices(self) -> I64: ...
@@ -206,6 +211,7 @@ class NativeTracker:
         relinearize: int = 10,
         order: int = 1,
         threads: int = 0,
+        stretch: I64 | None = None,
     ) -> None: ...
     @property
     def n_state(self) -> int: ...

@@ -11,6 +11,7 @@ mod tracking;
 
 use crate::camera::{self, Camera};
 use crate::emission;
+use crate::error::ensure_len;
 use crate::limits::StateMap;
 use crate::normalization::Normalization;
 use crate::rotation;
@@ -21,6 +22,7 @@ use nalgebra::{Matrix3, Vector3};
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use rayon::prelude::*;
 
 type Arr<'py> = PyReadonlyArrayDyn<'py, f64>;
 type IArr<'py> = PyReadonlyArrayDyn<'py, i64>;
@@ -573,17 +575,23 @@ struct PyStateMap {
 
 #[pymethods]
 impl PyStateMap {
+    /// `stretch`: elastic bones whose log-stretch follows the pose entries (issue 28).
     #[new]
+    #[pyo3(signature = (lower, upper, norm, enforce, stretch=None))]
     fn new(
         lower: Arr<'_>,
         upper: Arr<'_>,
         norm: (f64, f64, f64, f64),
         enforce: bool,
+        stretch: Option<IArr<'_>>,
     ) -> PyResult<Self> {
         let lo = view(&lower, "lower", &[None, Some(3)])?;
         let hi = view(&upper, "upper", &[Some(lo.len() / 3), Some(3)])?;
         let norm = norm_from(norm.0, norm.1, norm.2, norm.3)?;
-        let inner = StateMap::new(lo.len() / 3, lo, hi, &norm, enforce).map_err(to_py)?;
+        let bones = tracking::bone_list(stretch.as_ref())?;
+        let inner = StateMap::new(lo.len() / 3, lo, hi, &norm, enforce)
+            .and_then(|m| m.with_stretch(&bones))
+            .map_err(to_py)?;
         Ok(Self { inner, norm })
     }
     #[getter]
@@ -629,6 +637,59 @@ impl PyStateMap {
         }
         out(py, zs, &[n, self.inner.n_state()])
     }
+    /// Forward kinematics of states `(N, n_state)` → `(joints (N, J, 3), markers (N, M, 3))`,
+    /// with each state's bone lengths (elastic bones stretched by their log-stretch entries).
+    fn forward<'py>(
+        &self,
+        py: Python<'py>,
+        skeleton: &PySkeleton,
+        states: Arr<'py>,
+    ) -> PyResult<(Out<'py>, Out<'py>)> {
+        let sk = &skeleton.inner;
+        ensure_len(self.inner.n_pose(), sk.n_pose(), "state map pose length").map_err(to_py)?;
+        let ns = self.inner.n_state();
+        let s = view(&states, "states", &[None, Some(ns)])?;
+        crate::error::ensure_finite(s, "states").map_err(to_py)?;
+        let n = s.len() / ns.max(1);
+        let (nj, nm) = (sk.n_joints(), sk.n_markers());
+        let joints = alloc(py, &[n, nj, 3]);
+        let markers = alloc(py, &[n, nm, 3]);
+        {
+            let mut jw = joints.readwrite();
+            let mut mw = markers.readwrite();
+            let (jo, mo) = (jw.as_slice_mut()?, mw.as_slice_mut()?);
+            let map = &self.inner;
+            py.detach(|| {
+                jo.par_chunks_mut(nj * 3)
+                    .zip(mo.par_chunks_mut(nm * 3))
+                    .zip(s.par_chunks(ns.max(1)))
+                    .for_each_init(
+                        || {
+                            (
+                                sk.workspace(),
+                                vec![0.0; sk.n_pose()],
+                                vec![0.0; sk.n_bones()],
+                            )
+                        },
+                        |(ws, pose, len), ((j, m), z)| {
+                            map.to_pose_into(z, pose, None);
+                            map.lengths_into(z, sk.lengths(), len);
+                            sk.forward_flat_into(
+                                &pose[..3],
+                                &pose[3..],
+                                len,
+                                sk.offsets(),
+                                ws,
+                                Some(j),
+                                m,
+                            );
+                        },
+                    )
+            });
+        }
+        Ok((joints, markers))
+    }
+
     /// Alg. 4: states `(N, n_state)` → normalised pixels `(N, C, M, 2)`.
     fn emission<'py>(
         &self,

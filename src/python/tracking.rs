@@ -2,7 +2,7 @@
 //! the progress callback and Ctrl-C checks run between EM iterations with the GIL held.
 
 use super::error::to_py;
-use super::{alloc, cameras_from, norm_from, out, view, Arr, Out, PySkeleton};
+use super::{alloc, cameras_from, norm_from, out, view, Arr, IArr, Out, PySkeleton};
 use crate::limits::StateMap;
 use crate::tracking::{
     moments, EmOptions, FilterStats, OnlineTracker, Params, SkeletonEmission, Tracker,
@@ -63,6 +63,7 @@ fn emission_from(
     upper: &Arr<'_>,
     norm: (f64, f64, f64, f64),
     joint_limits: bool,
+    stretch: &[usize],
 ) -> PyResult<SkeletonEmission> {
     let sk = skeleton.inner.clone();
     let cams = cameras_from(params)?;
@@ -70,8 +71,25 @@ fn emission_from(
     let lo = view(lower, "lower", &[Some(nb), Some(3)])?;
     let hi = view(upper, "upper", &[Some(nb), Some(3)])?;
     let norm = norm_from(norm.0, norm.1, norm.2, norm.3)?;
-    let map = StateMap::new(nb, lo, hi, &norm, joint_limits).map_err(to_py)?;
+    let map = StateMap::new(nb, lo, hi, &norm, joint_limits)
+        .and_then(|m| m.with_stretch(stretch))
+        .map_err(to_py)?;
     SkeletonEmission::new(sk, cams, map, norm).map_err(to_py)
+}
+
+/// Bone indices from an optional int64 array (`None`: no bones).
+pub(super) fn bone_list(bones: Option<&IArr<'_>>) -> PyResult<Vec<usize>> {
+    match bones {
+        None => Ok(Vec::new()),
+        Some(a) => view(a, "stretch bones", &[None])?
+            .iter()
+            .map(|&b| {
+                usize::try_from(b).map_err(|_| {
+                    pyo3::exceptions::PyValueError::new_err(format!("negative bone index {b}"))
+                })
+            })
+            .collect(),
+    }
 }
 
 /// Counts of one E-step as a dict (`used`, `gated`, `invisible`, `gate_skipped_frames`).
@@ -106,7 +124,9 @@ impl PyTracker {
     #[new]
     /// `threads`: run this tracker's work on a private pool of that many threads (0: the
     /// global pool), e.g. 1 when several trackers run in parallel.
-    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x, relinearize=DEFAULT_RELINEARIZE, order=1, threads=0))]
+    /// `stretch`: elastic bones whose log-stretch follows the pose entries in the state
+    /// (memoryless transition; issue 28).
+    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x, relinearize=DEFAULT_RELINEARIZE, order=1, threads=0, stretch=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         skeleton: &PySkeleton,
@@ -119,8 +139,18 @@ impl PyTracker {
         relinearize: usize,
         order: usize,
         threads: usize,
+        stretch: Option<IArr<'_>>,
     ) -> PyResult<Self> {
-        let em = emission_from(skeleton, &params, &lower, &upper, norm, joint_limits)?;
+        let bones = bone_list(stretch.as_ref())?;
+        let em = emission_from(
+            skeleton,
+            &params,
+            &lower,
+            &upper,
+            norm,
+            joint_limits,
+            &bones,
+        )?;
         let shape = [
             None,
             Some(em.cameras.len()),
@@ -552,7 +582,7 @@ impl PyOnlineTracker {
         lag: usize,
         serial: bool,
     ) -> PyResult<Self> {
-        let em = emission_from(skeleton, &params, &lower, &upper, norm, joint_limits)?;
+        let em = emission_from(skeleton, &params, &lower, &upper, norm, joint_limits, &[])?;
         let n_cams = em.cameras.len();
         let ns = order * em.map.n_state();
         let p = params_from(

@@ -192,7 +192,14 @@ pub(crate) fn step<E: Emission + ?Sized>(
     // Alg. 6 lines 2-4 (exact for the linear transition): m̄ = F μ̃_{t-1}, P = F Ṽ_{t-1} Fᵀ + V_z.
     ws.mbar.resize(ns, 0.0);
     ws.p.resize(ns * ns, 0.0);
-    predict_into(mu_prev, v_prev, &params.vz, n, &mut ws.mbar, &mut ws.p);
+    predict_into(
+        mu_prev,
+        v_prev,
+        &params.vz,
+        Transition::of(em),
+        &mut ws.mbar,
+        &mut ws.p,
+    );
     mask.fill(status::MISSING);
     if x_t.iter().all(|v| v.is_nan()) {
         // No measurement: the filtered distribution is the prediction.
@@ -616,19 +623,58 @@ fn fresh_update(
     Ok(up)
 }
 
+/// The linear transition `F` of the state (see [`predict`]): `n` position entries (the
+/// emission's state), the order given by the state's length (`ns / n`), and position entries
+/// whose rows of `F` are 0, with their velocity twins: memoryless entries `z_t = ε_t ~ N(0,
+/// V_z)`, e.g. the log-stretch of elastic segments around their mean (issue 28, beyond the
+/// paper; `V_z`'s block of them is then their variance, learned by the same M-step).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Transition<'a> {
+    /// Number of position entries.
+    pub n: usize,
+    /// Position entries with a zero row of `F`.
+    pub memoryless: &'a [usize],
+}
+
+#[cfg(test)]
+impl Transition<'static> {
+    /// The transition without memoryless entries.
+    pub(crate) fn plain(n: usize) -> Self {
+        Self { n, memoryless: &[] }
+    }
+}
+
+impl Transition<'_> {
+    /// The transition of an emission's state.
+    pub(crate) fn of<E: Emission + ?Sized>(em: &E) -> Transition<'_> {
+        Transition {
+            n: em.n_state(),
+            memoryless: em.memoryless(),
+        }
+    }
+    /// The rows of `F` that are 0 in a state of length `ns` (with velocity twins for order 2).
+    fn zero_rows(&self, ns: usize) -> impl Iterator<Item = usize> + '_ {
+        let n = self.n;
+        self.memoryless
+            .iter()
+            .flat_map(move |&i| std::iter::once(i).chain((ns > n).then_some(n + i)))
+    }
+}
+
 /// The prediction of Alg. 6 lines 2-4 for the linear transition `F` of the state's order
 /// (`mu_prev.len() / n`): order 1 is the paper's random walk (`F = I`); order 2 is the
 /// position–velocity state `(z, ż)` with `z_t = z_{t-1} + ż_{t-1} + ε`, `ż_t = ż_{t-1} + ε`
-/// (`F = [[I, I], [0, I]]`, beyond the paper). Returns `(F μ, F Ṽ Fᵀ + V_z)`.
+/// (`F = [[I, I], [0, I]]`, beyond the paper), with the memoryless rows of `tr` zero.
+/// Returns `(F μ, F Ṽ Fᵀ + V_z)`.
 pub(crate) fn predict(
     mu_prev: &[f64],
     v_prev: &[f64],
     vz: &[f64],
-    n: usize,
+    tr: Transition<'_>,
 ) -> (DVector<f64>, DMatrix<f64>) {
     let ns = mu_prev.len();
     let (mut m, mut p) = (vec![0.0; ns], vec![0.0; ns * ns]);
-    predict_into(mu_prev, v_prev, vz, n, &mut m, &mut p);
+    predict_into(mu_prev, v_prev, vz, tr, &mut m, &mut p);
     (DVector::from_vec(m), DMatrix::from_vec(ns, ns, p))
 }
 
@@ -637,11 +683,11 @@ pub(crate) fn predict_into(
     mu_prev: &[f64],
     v_prev: &[f64],
     vz: &[f64],
-    n: usize,
+    tr: Transition<'_>,
     m: &mut [f64],
     p: &mut [f64],
 ) {
-    let ns = mu_prev.len();
+    let (ns, n) = (mu_prev.len(), tr.n);
     m.copy_from_slice(mu_prev);
     p.copy_from_slice(v_prev);
     if ns > n {
@@ -663,6 +709,14 @@ pub(crate) fn predict_into(
             }
         }
     }
+    // a zero row i of F: (F μ)_i = 0 and row and column i of F Ṽ Fᵀ are 0
+    for i in tr.zero_rows(ns) {
+        m[i] = 0.0;
+        p[i * ns..(i + 1) * ns].fill(0.0);
+        for c in 0..ns {
+            p[c * ns + i] = 0.0;
+        }
+    }
     for (x, y) in p.iter_mut().zip(vz) {
         *x += y;
     }
@@ -670,8 +724,9 @@ pub(crate) fn predict_into(
 }
 
 /// `F A` for the transition of [`predict`] (`A` with `ns` rows): the position rows gain the
-/// velocity rows.
-pub(crate) fn f_left(a: &DMatrix<f64>, n: usize) -> DMatrix<f64> {
+/// velocity rows; memoryless rows are 0.
+pub(crate) fn f_left(a: &DMatrix<f64>, tr: Transition<'_>) -> DMatrix<f64> {
+    let n = tr.n;
     let mut out = a.clone();
     if a.nrows() > n {
         for c in 0..a.ncols() {
@@ -680,11 +735,16 @@ pub(crate) fn f_left(a: &DMatrix<f64>, n: usize) -> DMatrix<f64> {
             }
         }
     }
+    for i in tr.zero_rows(a.nrows()) {
+        out.row_mut(i).fill(0.0);
+    }
     out
 }
 
-/// `A Fᵀ` for the transition of [`predict`] (`A` with `ns` columns).
-pub(crate) fn f_right(a: &DMatrix<f64>, n: usize) -> DMatrix<f64> {
+/// `A Fᵀ` for the transition of [`predict`] (`A` with `ns` columns); memoryless columns
+/// are 0.
+pub(crate) fn f_right(a: &DMatrix<f64>, tr: Transition<'_>) -> DMatrix<f64> {
+    let n = tr.n;
     let mut out = a.clone();
     if a.ncols() > n {
         for c in 0..n {
@@ -692,6 +752,9 @@ pub(crate) fn f_right(a: &DMatrix<f64>, n: usize) -> DMatrix<f64> {
                 out[(r, c)] += a[(r, n + c)];
             }
         }
+    }
+    for i in tr.zero_rows(a.ncols()) {
+        out.column_mut(i).fill(0.0);
     }
     out
 }

@@ -595,13 +595,13 @@ impl<E: Emission> Tracker<E> {
     }
 
     fn backward(&mut self, params: &Params, statistics: bool) -> Result<()> {
-        let (ns, n) = (self.n_state(), self.em.n_state());
+        let ns = self.n_state();
         self.acc = smoother::smooth_in_place(
             &mut self.means,
             &mut self.covs,
             &params.vz,
             ns,
-            n,
+            filter::Transition::of(&self.em),
             statistics,
         )?;
         self.has_statistics = statistics;

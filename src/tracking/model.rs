@@ -34,6 +34,11 @@ pub trait Emission: Send + Sync {
     fn block(&self) -> usize {
         1
     }
+    /// State entries whose transition row is 0 (memoryless, `z_t = ε_t`): the log-stretch
+    /// of elastic segments ([`crate::limits::StateMap::with_stretch`]). Default none.
+    fn memoryless(&self) -> &[usize] {
+        &[]
+    }
 }
 
 /// Alg. 4 ∘ Alg. 10: state → pose → forward kinematics → normalised pixels in every camera.
@@ -48,6 +53,8 @@ pub struct SkeletonEmission {
     pub map: StateMap,
     /// Normalisation constants (sec. 3.3).
     pub norm: Normalization,
+    /// The map's log-stretch entries (memoryless in the transition).
+    stretch_entries: Vec<usize>,
 }
 
 impl SkeletonEmission {
@@ -71,11 +78,14 @@ impl SkeletonEmission {
         if skeleton.n_markers() == 0 {
             return Err(AcmError::Invalid("the skeleton has no markers".into()));
         }
+        let nf = map.n_pose_state();
+        let stretch_entries = (nf..nf + map.stretch_bones().len()).collect();
         Ok(Self {
             skeleton,
             cameras,
             map,
             norm,
+            stretch_entries,
         })
     }
 }
@@ -97,6 +107,9 @@ impl Emission for SkeletonEmission {
     }
     fn block(&self) -> usize {
         2
+    }
+    fn memoryless(&self) -> &[usize] {
+        &self.stretch_entries
     }
 }
 

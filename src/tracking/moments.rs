@@ -63,20 +63,14 @@ pub fn posterior_poses(
                     vec![0.0; np],
                     vec![0.0; nj * 3],
                     vec![0.0; nm * 3],
+                    vec![0.0; sk.n_bones()],
                 )
             },
-            |(ws, sigma, pose, jb, mb), (t, ((((po, jo), mo), js), ms))| -> Result<()> {
+            |(ws, sigma, pose, jb, mb, len), (t, ((((po, jo), mo), js), ms))| -> Result<()> {
                 let mu = &means[t * n..(t + 1) * n];
                 model.map.to_pose_into(mu, po, None);
-                sk.forward_flat_into(
-                    &po[..3],
-                    &po[3..],
-                    sk.lengths(),
-                    sk.offsets(),
-                    ws,
-                    Some(jo),
-                    mo,
-                );
+                model.map.lengths_into(mu, sk.lengths(), len);
+                sk.forward_flat_into(&po[..3], &po[3..], len, sk.offsets(), ws, Some(jo), mo);
                 let l = cholesky(&covs[t * n * n..(t + 1) * n * n], n, &|| {
                     format!("the posterior covariance of frame {t}")
                 })?;
@@ -87,10 +81,11 @@ pub fn posterior_poses(
                 let mut msq = vec![0.0; nm * 3];
                 for z in sigma.chunks_exact(n) {
                     model.map.to_pose_into(z, pose, None);
+                    model.map.lengths_into(z, sk.lengths(), len);
                     sk.forward_flat_into(
                         &pose[..3],
                         &pose[3..],
-                        sk.lengths(),
+                        len,
                         sk.offsets(),
                         ws,
                         Some(jb),

@@ -11,7 +11,7 @@
 //! covariances (`want_cov = false`) the rest is `lag` matrix-vector products.
 
 use super::dense::symmetrize;
-use super::filter::{self, predict, FilterStats, Workspace};
+use super::filter::{self, predict, FilterStats, Transition, Workspace};
 use super::model::Emission;
 use super::smoother::{rts_apply, rts_gain};
 use super::Params;
@@ -249,7 +249,8 @@ impl<E: Emission> OnlineTracker<E> {
             return Err(AcmError::Invalid("no frame processed yet".into()));
         }
         let k = self.lag.min(self.frames - 1);
-        let (ns, n) = (self.ns, self.em.n_state());
+        let ns = self.ns;
+        let tr = Transition::of(&self.em);
         let vz = DMatrix::from_column_slice(ns, ns, &self.params.vz);
         // the gains of the frames t − k .. t − 1 not computed yet (normally only t − 1)
         for back in 1..=k {
@@ -257,7 +258,7 @@ impl<E: Emission> OnlineTracker<E> {
             let frame = self.frames - 1 - back;
             if self.gain_frame[slot] != frame {
                 let vf = DMatrix::from_column_slice(ns, ns, &self.covs[slot]);
-                self.gains[slot] = Some(rts_gain(&vf, &vz, n, frame)?);
+                self.gains[slot] = Some(rts_gain(&vf, &vz, tr, frame)?);
                 self.gain_frame[slot] = frame;
             }
         }
@@ -279,10 +280,10 @@ impl<E: Emission> OnlineTracker<E> {
             let (gt, p) = self.gains[slot].as_ref().expect("computed above");
             let (m, v) = if let Some(vn) = vs.as_ref() {
                 let vf = DMatrix::from_column_slice(ns, ns, &self.covs[slot]);
-                rts_apply(&mf, &vf, gt, p, &ms, Some(vn), n)
+                rts_apply(&mf, &vf, gt, p, &ms, Some(vn), tr)
             } else {
                 let empty = DMatrix::zeros(0, 0);
-                rts_apply(&mf, &empty, gt, p, &ms, None, n)
+                rts_apply(&mf, &empty, gt, p, &ms, None, tr)
             };
             ms = m;
             vs = v;
@@ -299,10 +300,10 @@ impl<E: Emission> OnlineTracker<E> {
     /// The prediction `steps` frames ahead of the last filtered frame (no measurement):
     /// `(mean, cov)` of the state, e.g. to cover the latency of a closed loop.
     pub fn predict(&self, steps: usize) -> (Vec<f64>, Vec<f64>) {
-        let n = self.em.n_state();
+        let tr = Transition::of(&self.em);
         let (mut m, mut v) = (self.means[self.head].clone(), self.covs[self.head].clone());
         for _ in 0..steps {
-            let (pm, mut pv) = predict(&m, &v, &self.params.vz, n);
+            let (pm, mut pv) = predict(&m, &v, &self.params.vz, tr);
             symmetrize(&mut pv);
             m = pm.as_slice().to_vec();
             v = pv.as_slice().to_vec();

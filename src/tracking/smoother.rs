@@ -13,7 +13,7 @@
 //! this against the literal sigma-point computation.) No gain needs to be stored.
 
 use super::dense::{chol_solve_mat, cholesky, symmetrize};
-use super::filter::{f_left, f_right};
+use super::filter::{f_left, f_right, Transition};
 use crate::error::Result;
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
@@ -39,7 +39,7 @@ pub(crate) fn smooth_in_place(
     covs: &mut [f64],
     vz: &[f64],
     ns: usize,
-    n: usize,
+    tr: Transition<'_>,
     statistics: bool,
 ) -> Result<DMatrix<f64>> {
     let steps = means.len() / ns;
@@ -48,7 +48,7 @@ pub(crate) fn smooth_in_place(
         return Ok(acc);
     }
     let vz = DMatrix::from_column_slice(ns, ns, vz);
-    smooth_pipelined(means, covs, &vz, ns, n, statistics.then_some(&mut acc))?;
+    smooth_pipelined(means, covs, &vz, ns, tr, statistics.then_some(&mut acc))?;
     symmetrize(&mut acc);
     Ok(acc)
 }
@@ -61,14 +61,14 @@ pub(crate) fn add_statistic(
     ms_next: &DVector<f64>,
     vs_next: &DMatrix<f64>,
     gt: &DMatrix<f64>,
-    n: usize,
+    tr: Transition<'_>,
 ) {
     let ns = ms.len();
-    let fms = f_left(&DMatrix::from_column_slice(ns, 1, ms.as_slice()), n);
+    let fms = f_left(&DMatrix::from_column_slice(ns, 1, ms.as_slice()), tr);
     let d = ms_next - fms.column(0);
     let cross = vs_next * gt; // Cov(s_{t+1}, s_t) = V̂_{t+1} G_tᵀ
-    let cf = f_right(&cross, n);
-    *acc += &d * d.transpose() + vs_next - &cf - cf.transpose() + f_left(&f_right(vs, n), n);
+    let cf = f_right(&cross, tr);
+    *acc += &d * d.transpose() + vs_next - &cf - cf.transpose() + f_left(&f_right(vs, tr), tr);
 }
 
 /// Frames per block of [`smooth_pipelined`].
@@ -84,7 +84,7 @@ fn smooth_pipelined(
     covs: &mut [f64],
     vz: &DMatrix<f64>,
     ns: usize,
-    n: usize,
+    tr: Transition<'_>,
     mut acc: Option<&mut DMatrix<f64>>,
 ) -> Result<()> {
     type Gains = Vec<(DMatrix<f64>, DMatrix<f64>)>;
@@ -95,7 +95,7 @@ fn smooth_pipelined(
             .into_par_iter()
             .map(|t| {
                 let vf = DMatrix::from_column_slice(ns, ns, &covs[t * nn..(t + 1) * nn]);
-                rts_gain(&vf, vz, n, t)
+                rts_gain(&vf, vz, tr, t)
             })
             .collect()
     };
@@ -115,10 +115,10 @@ fn smooth_pipelined(
             let (mean_head, mean_tail) = means.split_at_mut((t + 1 - lo) * ns);
             let mf = DVector::from_column_slice(&mean_head[(t - lo) * ns..]);
             let ms_next = DVector::from_column_slice(&mean_tail[..ns]);
-            let (ms, vs) = rts_apply(&mf, &vf, gt, p, &ms_next, Some(&vs_next), n);
+            let (ms, vs) = rts_apply(&mf, &vf, gt, p, &ms_next, Some(&vs_next), tr);
             let vs = vs.expect("asked for");
             if let Some(acc) = acc.as_deref_mut() {
-                add_statistic(acc, &ms, &vs, &ms_next, &vs_next, gt, n);
+                add_statistic(acc, &ms, &vs, &ms_next, &vs_next, gt, tr);
             }
             mean_head[(t - lo) * ns..].copy_from_slice(ms.as_slice());
             cov_head[(t - lo) * nn..].copy_from_slice(vs.as_slice());
@@ -165,11 +165,11 @@ pub(crate) fn rts_step(
     ms_next: &DVector<f64>,
     vs_next: &DMatrix<f64>,
     vz: &DMatrix<f64>,
-    n: usize,
+    tr: Transition<'_>,
     t: usize,
 ) -> Result<(DVector<f64>, DMatrix<f64>, DMatrix<f64>)> {
-    let (gt, p) = rts_gain(vf, vz, n, t)?;
-    let (ms, vs) = rts_apply(mf, vf, &gt, &p, ms_next, Some(vs_next), n);
+    let (gt, p) = rts_gain(vf, vz, tr, t)?;
+    let (ms, vs) = rts_apply(mf, vf, &gt, &p, ms_next, Some(vs_next), tr);
     Ok((ms, vs.expect("asked for"), gt))
 }
 
@@ -181,12 +181,12 @@ pub(crate) fn rts_step(
 pub(crate) fn rts_gain(
     vf: &DMatrix<f64>,
     vz: &DMatrix<f64>,
-    n: usize,
+    tr: Transition<'_>,
     t: usize,
 ) -> Result<(DMatrix<f64>, DMatrix<f64>)> {
     let ns = vf.nrows();
-    let fv = f_left(vf, n); // F Ṽ_t
-    let p = f_right(&fv, n) + vz;
+    let fv = f_left(vf, tr); // F Ṽ_t
+    let p = f_right(&fv, tr) + vz;
     let lp = cholesky(p.as_slice(), ns, &|| {
         format!("F Ṽ_t Fᵀ + V_z in the smoother at frame {t}")
     })?;
@@ -204,10 +204,10 @@ pub(crate) fn rts_apply(
     p: &DMatrix<f64>,
     ms_next: &DVector<f64>,
     vs_next: Option<&DMatrix<f64>>,
-    n: usize,
+    tr: Transition<'_>,
 ) -> (DVector<f64>, Option<DMatrix<f64>>) {
     let ns = mf.len();
-    let fm = f_left(&DMatrix::from_column_slice(ns, 1, mf.as_slice()), n);
+    let fm = f_left(&DMatrix::from_column_slice(ns, 1, mf.as_slice()), tr);
     let ms = mf + gt.tr_mul(&(ms_next - fm.column(0)));
     let vs = vs_next.map(|vn| {
         // both products by matrixmultiply's packed GEMM (`tr_mul` takes a dot product per

@@ -1,6 +1,7 @@
 //! Golden tests: on a linear-Gaussian model the UKF/RTS must equal the closed-form Kalman
 //! filter and RTS smoother (written here in the textbook covariance form with `S⁻¹`).
 
+use super::filter::Transition;
 use super::*;
 use nalgebra::{DMatrix, DVector};
 
@@ -739,9 +740,18 @@ fn sequential_smoother(
         let ms_next = DVector::from_column_slice(&means[(t + 1) * ns..(t + 2) * ns]);
         let vf = DMatrix::from_column_slice(ns, ns, &covs[t * nn..(t + 1) * nn]);
         let vs_next = DMatrix::from_column_slice(ns, ns, &covs[(t + 1) * nn..(t + 2) * nn]);
-        let (ms, vs, gt) = smoother::rts_step(&mf, &vf, &ms_next, &vs_next, &vz, n, t).unwrap();
+        let (ms, vs, gt) =
+            smoother::rts_step(&mf, &vf, &ms_next, &vs_next, &vz, Transition::plain(n), t).unwrap();
         if statistics {
-            smoother::add_statistic(&mut acc, &ms, &vs, &ms_next, &vs_next, &gt, n);
+            smoother::add_statistic(
+                &mut acc,
+                &ms,
+                &vs,
+                &ms_next,
+                &vs_next,
+                &gt,
+                Transition::plain(n),
+            );
         }
         means[t * ns..(t + 1) * ns].copy_from_slice(ms.as_slice());
         covs[t * nn..(t + 1) * nn].copy_from_slice(vs.as_slice());
@@ -776,7 +786,15 @@ fn pipelined_smoother_equals_the_sequential_one() {
             let (mut m1, mut c1) = (means.clone(), covs.clone());
             let (mut m2, mut c2) = (means.clone(), covs.clone());
             let a1 = sequential_smoother(&mut m1, &mut c1, &vz, ns, n, statistics);
-            let a2 = smoother::smooth_in_place(&mut m2, &mut c2, &vz, ns, n, statistics).unwrap();
+            let a2 = smoother::smooth_in_place(
+                &mut m2,
+                &mut c2,
+                &vz,
+                ns,
+                Transition::plain(n),
+                statistics,
+            )
+            .unwrap();
             assert_eq!(m1, m2, "means, ns = {ns}");
             assert_eq!(c1, c2, "covariances, ns = {ns}");
             assert_eq!(a1, a2, "statistic, ns = {ns}");
@@ -847,4 +865,43 @@ fn the_log_likelihood_stop_needs_two_small_changes() {
     assert!(!super::ll_settled(&h, tol), "a fall is not convergence");
     let h: Vec<Iteration> = [500.0, 500.5].map(it).to_vec();
     assert!(!super::ll_settled(&h, tol), "too few iterations");
+}
+
+/// The memoryless rows of [`Transition`] (elastic segments' log-stretch): `predict`, `f_left`
+/// and `f_right` equal the products with the explicit `F` whose rows are zero there, for the
+/// random walk and the position–velocity state.
+#[test]
+fn memoryless_rows_match_the_explicit_transition() {
+    let n = 4;
+    let zero = [1usize, 3];
+    for order in [1usize, 2] {
+        let ns = order * n;
+        let mut f = DMatrix::<f64>::identity(ns, ns);
+        if order == 2 {
+            for i in 0..n {
+                f[(i, n + i)] = 1.0;
+            }
+        }
+        for &i in &zero {
+            f.row_mut(i).fill(0.0);
+            if order == 2 {
+                f.row_mut(n + i).fill(0.0);
+            }
+        }
+        let a = DMatrix::from_fn(ns, ns, |r, c| ((r * 7 + c * 3) % 11) as f64 - 5.0);
+        let v = &a * a.transpose() + DMatrix::identity(ns, ns);
+        let vz = DMatrix::from_fn(ns, ns, |r, c| if r == c { 0.5 + r as f64 } else { 0.1 });
+        let mu: Vec<f64> = (0..ns).map(|i| i as f64 - 2.5).collect();
+        let tr = Transition {
+            n,
+            memoryless: &zero,
+        };
+        let (m, p) = filter::predict(&mu, v.as_slice(), vz.as_slice(), tr);
+        let m_ref = &f * DVector::from_vec(mu.clone());
+        let p_ref = &f * &v * f.transpose() + &vz;
+        assert!((m - m_ref).amax() < 1e-12);
+        assert!((p - p_ref).amax() < 1e-9);
+        assert!((filter::f_left(&a, tr) - &f * &a).amax() < 1e-12);
+        assert!((filter::f_right(&a, tr) - &a * f.transpose()).amax() < 1e-12);
+    }
 }
