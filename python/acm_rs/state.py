@@ -17,6 +17,7 @@ import numpy as np
 
 from . import _native
 from ._arrays import as_float_array
+from .rotation import wrap_rotation_vectors
 
 if TYPE_CHECKING:  # pragma: no cover
     from .camera import CameraRig
@@ -149,6 +150,10 @@ class StateMap:
     joint_limits : bool
         Enforce limits with the erf map of Alg. 10 (otherwise bounded entries are linear;
         fixed entries stay fixed either way).
+    stretch : bool
+        Append one entry per elastic bone of the skeleton (``skeleton.elastic_bones``): its
+        log-stretch ``s``, the bone's length in that state being ``l_b exp(s)`` (elastic
+        segments, :mod:`acm_rs.elastic`). Default: rigid bones, pose entries only.
     """
 
     def __init__(
@@ -156,16 +161,21 @@ class StateMap:
         skeleton: Skeleton,
         normalization: Normalization | None = None,
         joint_limits: bool = True,
+        stretch: bool = False,
     ) -> None:
         self.skeleton = skeleton
         self.joint_limits = bool(joint_limits)
         self.normalization = normalization or Normalization()
         lim = skeleton.joint_limits
+        self.stretch_bones = (
+            np.asarray(skeleton.elastic_bones, np.int64) if stretch else np.zeros(0, np.int64)
+        )
         self._native = _native.NativeStateMap(
             np.ascontiguousarray(lim[..., 0]),
             np.ascontiguousarray(lim[..., 1]),
             self.normalization._tuple(),
             bool(joint_limits),
+            self.stretch_bones if stretch else None,
         )
 
     @property
@@ -174,9 +184,34 @@ class StateMap:
         return int(self._native.n_state)
 
     @property
+    def n_pose_state(self) -> int:
+        """Number of pose entries (the first ones; the log-stretch entries follow)."""
+        return self.n_state - len(self.stretch_bones)
+
+    @property
     def free_indices(self) -> np.ndarray:
-        """(n_state,) indices of the free entries in the flat pose ``[t, r.ravel()]``."""
+        """(n_pose_state,) indices of the free entries in the flat pose ``[t, r.ravel()]``."""
         return self._native.free_indices
+
+    def lengths(self, z: np.ndarray) -> np.ndarray:
+        """State ``(..., n_state)`` -> bone lengths ``(..., n_bones)`` (world units): the
+        skeleton's, with each elastic bone times ``exp(s)`` of its entry."""
+        zz = as_float_array(z, "z", (self.n_state,))
+        out = np.broadcast_to(self.skeleton.bone_lengths, zz.shape[:-1] + (self.skeleton.n_bones,))
+        out = np.array(out)
+        if len(self.stretch_bones):
+            out[..., self.stretch_bones] *= np.exp(zz[..., self.n_pose_state :])
+        return out
+
+    def forward(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Forward kinematics of states ``(..., n_state)`` with each state's bone lengths:
+        ``(joints (..., J, 3), markers (..., M, 3))`` in world units (in parallel in Rust)."""
+        zz = as_float_array(z, "z", (self.n_state,))
+        lead = zz.shape[:-1]
+        j, m = self._native.forward(
+            self.skeleton._native, np.ascontiguousarray(zz.reshape(-1, self.n_state))
+        )
+        return j.reshape(lead + j.shape[1:]), m.reshape(lead + m.shape[1:])
 
     def to_pose(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """State ``(..., n_state)`` -> ``(t (..., 3), r (..., n_bones, 3))`` (Alg. 4 + Alg. 10)."""
@@ -195,7 +230,8 @@ class StateMap:
     def from_pose(self, t: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Inverse map: ``t (..., 3)``, ``r (..., n_bones, 3)`` -> ``z (..., n_state)``.
 
-        Fixed entries are ignored; bounded entries at or beyond a limit are moved just inside.
+        Fixed entries are ignored; bounded entries at or beyond a limit are moved just inside;
+        log-stretch entries are 0 (the mean lengths).
         """
         tt = as_float_array(t, "t", (3,))
         rr = as_float_array(r, "r", (self.skeleton.n_bones, 3))
@@ -207,7 +243,7 @@ class StateMap:
 
     @property
     def bounded(self) -> np.ndarray:
-        """(n_state,) bool: entries mapped through the erf of Alg. 10 (joint limits)."""
+        """(n_pose_state,) bool: entries mapped through the erf of Alg. 10 (joint limits)."""
         free = np.asarray(self.free_indices)
         if not self.joint_limits:
             return np.zeros(free.size, bool)
@@ -230,9 +266,23 @@ class StateMap:
         in the first 250). Starting such entries in the middle of their range, where the map
         is steep, the filter (broad start prior) finds them within a few frames: 0.8 mm from
         the first frame on, with ``|z| <= 0.5`` and below (``benches/bench_long.py``). Entries
-        already there, and unbounded ones (``t``, the global rotation), are unchanged."""
+        already there, and unbounded ones (``t``, the global rotation), are unchanged.
+
+        The rotation of a bone without limits (its components unbounded or fixed at 0) starts
+        at its shortest Rodrigues vector, ``|r| <= π``
+        (:func:`acm_rs.rotation.wrap_rotation_vectors`): an unbounded fit can return the same
+        rotation at ``|r|`` of many π, where the map is nearly singular and the filter cannot
+        move the bone."""
+        lim = self.skeleton.joint_limits  # (n_bones, 3, 2)
+        free_or_zero = (np.isinf(lim[..., 0]) & np.isinf(lim[..., 1])) | (
+            (lim[..., 0] == 0) & (lim[..., 1] == 0)
+        )
+        unlimited = free_or_zero.all(axis=-1)  # (n_bones,)
+        r = np.array(r, dtype=np.float64)
+        r[..., unlimited, :] = wrap_rotation_vectors(r[..., unlimited, :])
         z = self.from_pose(t, r)
-        b = self.bounded
+        b = np.zeros(self.n_state, bool)
+        b[: self.n_pose_state] = self.bounded
         z[..., b] = np.clip(z[..., b], -START_Z, START_Z)
         return z
 

@@ -59,21 +59,15 @@ def track(
     """
     if memory_limit is not None and not memory_limit > 0:
         raise ValueError(f"memory_limit must be > 0 bytes, got {memory_limit}")
-    if skeleton.stretch_sd.any():
-        names = [skeleton.bone_names[b] for b in skeleton.elastic_bones]
-        warnings.warn(
-            f"the skeleton has elastic segments ({len(names)} bones, e.g. {names[0]!r}); the "
-            "tracker keeps every bone at its mean length (per-frame lengths are fitted by "
-            "acm_rs.elastic for labelled frames and evaluate, not yet tracked)",
-            UserWarning,
-            stacklevel=2,
-        )
     method = options.get("method", "ukf")
     if method == "ukf" and np.ndim(detections) == 4:
         motion = options.get("motion", DEFAULT_MOTION)
         limit = default_memory_limit() if memory_limit is None else memory_limit
         n_frames = np.shape(detections)[1]
-        n_state = StateMap(skeleton, None, options.get("joint_limits", True)).n_state
+        elastic = bool(skeleton.stretch_sd.any()) and options.get("elastic", None) is not False
+        n_state = StateMap(
+            skeleton, None, options.get("joint_limits", True), stretch=elastic
+        ).n_state
         # an unknown motion is refused by track_in_memory
         need = in_memory_bytes(n_frames, n_state, motion) if motion in MOTION_ORDER else 0
         if need > limit:
@@ -89,9 +83,17 @@ def track(
                     f"{limit / 2**30:.1f} GiB), and the bounded-memory path does not take "
                     f"{unsupported}: leave them at their defaults, or raise memory_limit"
                 )
-            unknown = set(options) - set(_BOUNDED_OPTIONS) - set(_DEFAULTS) - {"method"}
+            unknown = set(options) - set(_BOUNDED_OPTIONS) - set(_DEFAULTS) - {"method", "elastic"}
             if unknown:
                 raise TypeError(f"track() got unexpected keyword argument(s) {sorted(unknown)}")
+            if skeleton.stretch_sd.any() and options.get("elastic", True):
+                warnings.warn(
+                    "the bounded-memory path keeps every bone at its mean length: the "
+                    "skeleton's elastic segments are tracked by the in-memory EM only "
+                    "(raise memory_limit, or pass elastic=False to silence this)",
+                    UserWarning,
+                    stacklevel=2,
+                )
             return track_bounded(
                 rig, skeleton, detections, need=need, limit=limit,
                 **{k: v for k, v in options.items() if k in _BOUNDED_OPTIONS},

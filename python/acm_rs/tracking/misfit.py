@@ -104,8 +104,7 @@ def marker_covariances(result: PoseResult, chunk: int = 64) -> np.ndarray:
         c = 0.5 * (cov[s:e] + cov[s:e].transpose(0, 2, 1)) + eye
         dirs = (np.linalg.cholesky(c) * np.sqrt(n)).transpose(0, 2, 1)  # row i: √n L e_i
         sig = np.concatenate([mean[s:e, None] + dirs, mean[s:e, None] - dirs], axis=1)
-        t, r = sm.to_pose(sig.reshape(-1, n))
-        _, mk = sk.forward(t, r)
+        _, mk = sm.forward(sig.reshape(-1, n))  # (each sigma point's bone lengths)
         mk = mk.reshape(e - s, 2 * n, n_m, 3)
         d = mk - mk.mean(axis=1, keepdims=True)
         out[s:e] = np.einsum("tsmi,tsmj->tmij", d, d) / (2 * n)

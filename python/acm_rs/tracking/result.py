@@ -134,8 +134,7 @@ class PoseResult:
         )
         eps = rng.standard_normal((n,) + self.state_mean.shape)
         z = self.state_mean[None] + np.einsum("tij,ntj->nti", chol, eps)
-        t, r = self.state_map.to_pose(z)
-        joints, markers = self.skeleton.forward(t.reshape(-1, 3), r.reshape((-1,) + r.shape[2:]))
+        joints, markers = self.state_map.forward(z.reshape(-1, z.shape[-1]))
         shape = (n, self.n_frames)
         return joints.reshape(shape + joints.shape[1:]), markers.reshape(shape + markers.shape[1:])
 
@@ -157,6 +156,13 @@ class PoseResult:
             if ok.any()
             else "no detections"
         ]
+        if self.info.get("elastic"):
+            sd = np.asarray(self.info["stretch_sd"])
+            e = self.skeleton.elastic_bones
+            lines.append(
+                f"  elastic segments: {len(e)} bones, learned stretch SD "
+                f"{100 * sd[e].min():.1f}-{100 * sd[e].max():.1f} % of their lengths"
+            )
         if "seconds" in self.info:
             lines.append(f"  wall time {self.info['seconds']:.2f} s")
         return "\n".join(lines)
@@ -210,7 +216,9 @@ class PoseResult:
             rotation=nd.get("rotation", np.pi / 2),
             pixel=tuple(nd.get("pixel", (640.0, 512.0))),
         )
-        sm = StateMap(skeleton, norm, bool(info.get("joint_limits", True)))
+        sm = StateMap(
+            skeleton, norm, bool(info.get("joint_limits", True)), stretch=bool(info.get("elastic"))
+        )
         history = em_history(d["em_delta"], d["em_seconds"])
         return cls(
             skeleton=skeleton, rig=rig, state_map=sm, joints=d["joints"],

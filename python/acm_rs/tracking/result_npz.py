@@ -85,8 +85,7 @@ def posterior_variance(result: PoseResult, points: str, chunk: int = 256) -> np.
         chol = np.linalg.cholesky(c) * np.sqrt(n)  # (t, n, n), columns = sigma directions
         dirs = chol.transpose(0, 2, 1)  # (t, n, n): row i = sqrt(n) L e_i
         sig = np.concatenate([mean[s:e, None] + dirs, mean[s:e, None] - dirs], axis=1)
-        t, r = result.state_map.to_pose(sig.reshape(-1, n))
-        _, mk = result.skeleton.forward(t, r)
+        _, mk = result.state_map.forward(sig.reshape(-1, n))
         mk = mk.reshape(e - s, 2 * n, n_p, 3)
         out[s:e] = mk.var(axis=1)
     return out

@@ -46,6 +46,9 @@ MOTION_ORDER = {"random_walk": 1, "velocity": 2, "auto": 2}
 #: Default motion model (chosen by measurement, docs/tracking.md).
 DEFAULT_MOTION = "auto"
 
+#: Rounds of the elastic segments' mean lengths between EM runs (see track_in_memory).
+MAX_LENGTH_ROUNDS = 5
+
 #: Bytes per frame the in-memory EM keeps, in units of ``(order · n_state)²`` doubles
 #: (filtered, predicted and smoothed moments and the cross-covariances of Alg. 9; measured
 #: peak RSS of the rat, 50 entries: 70 KB/frame for the random walk, 206 KB/frame for the
@@ -320,11 +323,12 @@ def _em_start(
     return f0, mu0, initial_vx(rig_u, sk_u, det, norm_u)
 
 
-def _velocity_init(params: dict, means: np.ndarray) -> tuple:
+def _velocity_init(params: dict, means: np.ndarray, memoryless=()) -> tuple:
     """Start of EM for the position-velocity state from the random walk's EM result:
     ``μ0 = (μ̂_0, μ̂_1 − μ̂_0)``, ``V0 = diag(V0, 2 V0 + Q_v)``, ``V_z = diag(V_z / 10, Q_v)``
     with ``Q_v`` the covariance of the second differences of the smoothed means ``(T+1, n)``,
-    and the learned ``V_x``."""
+    and the learned ``V_x``. Memoryless entries (elastic segments' log-stretch) keep their
+    learned variance in ``V_z`` (it is their variance, not a step's)."""
     m = np.asarray(means)
     n = m.shape[1]
     d2 = np.diff(m, 2, axis=0) if len(m) > 2 else np.zeros((1, n))
@@ -333,7 +337,10 @@ def _velocity_init(params: dict, means: np.ndarray) -> tuple:
     v0, vz = params["V0"], params["Vz"]
     mu0 = np.concatenate([params["mu0"], m[1] - m[0] if len(m) > 1 else np.zeros(n)])
     v0 = np.block([[v0, z], [z, 2 * v0 + qv]])
-    vz = np.block([[0.1 * vz, z], [z, qv]])
+    keep = np.asarray(memoryless, np.int64)
+    vz_pos = 0.1 * vz
+    vz_pos[np.ix_(keep, keep)] = vz[np.ix_(keep, keep)]
+    vz = np.block([[vz_pos, z], [z, qv]])
     return mu0, v0, vz, params["Vx_diag"]
 
 
@@ -485,6 +492,7 @@ def track_in_memory(
     motion: str = DEFAULT_MOTION,
     relinearize: int = 10,
     misfit: str = "auto",
+    elastic: bool | None = None,
 ) -> PoseResult:
     """Reconstruct the poses of a recording in memory (ACM supp. sec. 4); what
     :func:`acm_rs.track` runs when the recording's moments fit its memory budget.
@@ -542,6 +550,13 @@ def track_in_memory(
         At most this many iterated posterior linearisations of a frame's update where the
         single unscented update of Alg. 6 does not hold (the first frame with detections
         after a stretch without any); 0 gives the paper's filter.
+    elastic : bool or None
+        Track the skeleton's elastic segments (``skeleton.stretch_sd``, issue 28; beyond the
+        paper): each elastic bone's log-stretch is a state entry with a memoryless
+        transition, ``s_t ~ N(0, σ_b²)``, ``σ_b²`` starting at the skeleton's and learned by
+        the M-step (its block of ``V_z``). Results: ``info["bone_lengths"]`` (T, n_bones)
+        and ``info["bone_lengths_std"]``, ``info["stretch_sd"]`` (n_bones,) learned. Default:
+        when the skeleton has elastic bones; False keeps every bone at its mean length.
     misfit : {"auto", "isotropic", "full", "off"}
         Model misfit of the markers (issue 26 item 3, beyond the paper): the true marker is
         ``FK(z) + δ`` with ``δ ~ N(0, Σ_k)`` per marker, ``Σ_k`` estimated from the
@@ -618,7 +633,16 @@ def track_in_memory(
     fit_px = check_camera_order(rig_u, sk_u, det, norm_u)
     check_scale(rig, skeleton, det)
     empty = _empty_stretches(det)
-    sm = StateMap(skeleton, norm, joint_limits)
+    has_stretch = bool(skeleton.stretch_sd.any())
+    elastic = has_stretch if elastic is None else bool(elastic)
+    if elastic and not has_stretch:
+        raise ValueError(
+            "elastic=True needs a skeleton with elastic bones (stretch_sd > 0): learn them with "
+            "acm_rs.elastic.add_stretch or `acm-rs learn --elastic`"
+        )
+    elastic = elastic and method == "ukf"
+    sm = StateMap(skeleton, norm, joint_limits, stretch=elastic)
+    bones = sm.stretch_bones
     if method == "deterministic":
         t, r = _deterministic(rig_u, sk_u, det, norm_u)
         t = t * c_t
@@ -638,6 +662,7 @@ def track_in_memory(
         return result
 
     f0, mu0, vx0 = _em_start(rig_u, sk_u, det, norm_u, joint_limits)
+    mu0 = np.concatenate([mu0, np.zeros(len(bones))])  # log-stretch 0: the mean lengths
     x = norm.normalize_pixels(det).transpose(1, 0, 2, 3)  # (T, C, M, 2)
     lim = skeleton.joint_limits
 
@@ -646,6 +671,7 @@ def track_in_memory(
             sk_u._native, rig_u.get_params(), np.ascontiguousarray(lim[..., 0]),
             np.ascontiguousarray(lim[..., 1]), norm_u._tuple(), bool(joint_limits),
             np.ascontiguousarray(x), relinearize=int(relinearize), order=order,
+            stretch=bones if elastic else None,
         )  # fmt: skip
 
     def run(native, init: tuple, max_iter: int):
@@ -656,10 +682,42 @@ def track_in_memory(
         )  # fmt: skip
 
     native = make_tracker(1)
-    eye = np.eye(native.n_state) * noise
+    # V0 = V_z = noise I on the pose entries; the skeleton's stretch variances on the rest
+    eye = np.diag(
+        np.concatenate([np.full(sm.n_pose_state, noise), skeleton.stretch_sd[bones] ** 2])
+    )
     t_init = time.perf_counter() - t_start
     # Alg. 11 with the random walk: mu0 of sec. 4.7, V0 = V_z = noise I, V_x from the data
     params, history, converged, interrupted = run(native, (mu0, eye, eye.copy(), vx0), max_iter)
+    length_rounds = 0
+    if elastic:
+        # the mean lengths too (a conditional M-step): the stretch model is s ~ N(b, σ²);
+        # b = mean_t E[s_t] moves into l_b (l_b exp(s) = l_b e^b exp(s − b)), and EM goes on
+        # from there. Lengths from a few labelled frames are biased by their stretch (a 13 %
+        # paw on 40 frames took a 2x stretch SD to explain).
+        idx = np.arange(sm.n_pose_state, sm.n_state)
+        for _ in range(MAX_LENGTH_ROUNDS):
+            if interrupted or len(history) >= max_iter:
+                break
+            b = native.means()[1:, idx].mean(axis=0)
+            sd = np.sqrt(np.diag(params["Vz"])[idx])
+            if np.all(np.abs(b) <= 0.1 * np.maximum(sd, 0.01)):
+                break
+            length_rounds += 1
+            new = sk_u.bone_lengths.copy()
+            new[bones] *= np.exp(b)
+            sk_u = sk_u.with_parameters(new)
+            skeleton = skeleton.with_parameters(new * c_t)
+            mu0_b = params["mu0"].copy()
+            mu0_b[idx] -= b
+            native = make_tracker(1)
+            # (V_z keeps its E[s²]: the next M-step takes b² out of it)
+            params, more, converged, interrupted = run(
+                native, (mu0_b, params["V0"], params["Vz"], params["Vx_diag"]),
+                max_iter - len(history),
+            )  # fmt: skip
+            history = history + more
+        sm = StateMap(skeleton, norm, joint_limits, stretch=True)
     for h in history:
         h["motion"] = "random_walk"
     outcome = native.em_outcome()
@@ -671,7 +729,7 @@ def track_in_memory(
         # EM of the position-velocity model started from the random walk's answer (from
         # the sec. 4.7 start it wanders: docs/tracking.md)
         rw = (native, params, history, converged, outcome)
-        init = _velocity_init(params, native.means())
+        init = _velocity_init(params, native.means(), np.arange(sm.n_pose_state, sm.n_state))
         hint = (native.means(), native.covs())
         native = make_tracker(2)
         # where the velocity's prior is too broad (after stretches without detections), the
@@ -720,6 +778,21 @@ def track_in_memory(
     mask = native.mask().transpose(1, 0, 2, 3)[..., 0]  # (C, T, M)
     t = poses[:, :3]
     r = poses[:, 3:].reshape(n_frames, skeleton.n_bones, 3)
+    stretch_info = {"elastic": elastic}
+    if elastic:
+        idx = np.arange(sm.n_pose_state, sm.n_state)
+        s_mean = means[1:, idx]
+        s_sd = np.sqrt(np.maximum(covs[1:, idx, idx], 0.0))
+        lengths = np.broadcast_to(skeleton.bone_lengths, (n_frames, skeleton.n_bones)).copy()
+        lengths[:, bones] *= np.exp(s_mean)
+        lengths_sd = np.zeros_like(lengths)
+        lengths_sd[:, bones] = lengths[:, bones] * s_sd  # first order in s
+        learned = np.zeros(skeleton.n_bones)
+        learned[bones] = np.sqrt(np.diag(params["Vz"])[idx])
+        stretch_info |= {
+            "bone_lengths": lengths, "bone_lengths_std": lengths_sd, "stretch_sd": learned,
+            "mean_lengths": skeleton.bone_lengths, "length_rounds": length_rounds,
+        }  # fmt: skip
     result = PoseResult(
         skeleton=skeleton, rig=rig, state_map=sm, joints=joints, joints_std=joints_std,
         markers=markers, t=t, r=r, state_mean=means[1:], state_cov=covs[1:], detections=det,
@@ -739,7 +812,7 @@ def track_in_memory(
             "check_fit_px": fit_px,
             "normalization": _norm_dict(norm),
             "seconds_init": t_init, "seconds": time.perf_counter() - t_start,
-        },
+        } | stretch_info,
     )  # fmt: skip
     if interrupted:
         print(
