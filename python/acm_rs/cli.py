@@ -159,21 +159,32 @@ def _cmd_from_labels(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate
+    from .evaluate import evaluate, evaluate_refined
     from .models import load_name_or_file
 
+    if args.refine_calibration:
+        from ._io import check_output_path
+
+        check_output_path(args.refine_calibration, args.overwrite)
     rig, labels, what = _rig_and_labels(args)
     print(f"acm-rs evaluate: {what}")
     pcutoff, why = labels.resolve_pcutoff(args.pcutoff)
-    ev = evaluate(
-        rig, load_name_or_file(args.model), labels, relearn=args.relearn,
-        pcutoff=pcutoff if labels.likelihood is not None else 0.0,
-    )  # fmt: skip
+    cutoff = pcutoff if labels.likelihood is not None else 0.0
+    skeleton = load_name_or_file(args.model)
+    ev = evaluate(rig, skeleton, labels, relearn=args.relearn, pcutoff=cutoff)
     print(ev.table())
     print(ev.summary())
     if args.output:
         for f in ev.save(args.output):
             print(f"  wrote {f}")
+    if args.refine_calibration:
+        ref = evaluate_refined(
+            rig, skeleton, labels, relearn=args.relearn, pcutoff=cutoff,
+            intrinsics=args.refine_intrinsics,
+        )  # fmt: skip
+        print(ref.summary())
+        ref.refinement.rig.save(args.refine_calibration)
+        print(f"  wrote {args.refine_calibration} (refined on frames {ref.train_frames.tolist()})")
     return 0
 
 
@@ -244,6 +255,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--relearn", action="store_true",
         help="learn the skeleton again without the held-out camera in each fold",
     )  # fmt: skip
+    ev.add_argument(
+        "--refine-calibration", metavar="TOML",
+        help="also refine the calibration on the keypoints of every other labelled frame, "
+        "write it here, and report the held-out frames before and after",
+    )  # fmt: skip
+    ev.add_argument(
+        "--refine-intrinsics", action="store_true",
+        help="with --refine-calibration: refine focal lengths and principal points too",
+    )  # fmt: skip
+    ev.add_argument("--overwrite", action="store_true", help="replace an existing calibration")
     ev.add_argument("-o", "--output", help="prefix of the CSV tables and the PNG figure")
     ev.set_defaults(func=_cmd_evaluate)
     lp = sub.add_parser(

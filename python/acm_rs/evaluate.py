@@ -35,7 +35,7 @@ from .elastic import learn_stretch, project_stretched
 from .learning import learn_skeleton, triangulate
 from .skeleton import Skeleton
 
-__all__ = ["Evaluation", "evaluate"]
+__all__ = ["Evaluation", "RefinedEvaluation", "evaluate", "evaluate_refined"]
 
 
 @dataclass
@@ -300,3 +300,81 @@ def evaluate(
         "seconds": time.perf_counter() - start,
     }  # fmt: skip
     return Evaluation(names, cams, model_err, tri_err, per_kp, per_cam, info)
+
+
+@dataclass
+class RefinedEvaluation:
+    """Result of :func:`evaluate_refined`: held-out frames evaluated with the starting
+    calibration (``before``) and with the one refined on the training frames' keypoints
+    (``after``, :func:`acm_rs.calibration.refine_on_keypoints`)."""
+
+    before: Evaluation
+    after: Evaluation
+    refinement: object  # KeypointRefinement
+    train_frames: np.ndarray
+    test_frames: np.ndarray
+
+    def summary(self) -> str:
+        b, a = self.before.per_camera.loc["all"], self.after.per_camera.loc["all"]
+        return (
+            f"{self.refinement.summary()}\n"
+            f"held-out frames ({len(self.test_frames)}; trained on {len(self.train_frames)}): "
+            f"model {b['model_px']:.2f} -> {a['model_px']:.2f} px, triangulation "
+            f"{b['triangulation_px']:.2f} -> {a['triangulation_px']:.2f} px"
+        )
+
+
+def evaluate_refined(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    labels,
+    *,
+    bodyparts: Sequence[str] | None = None,
+    likelihood: np.ndarray | None = None,
+    pcutoff: float = 0.0,
+    train_frames: Sequence[int] | None = None,
+    intrinsics: bool = False,
+    **options,
+) -> RefinedEvaluation:
+    """Refine the calibration on the keypoints of training frames and evaluate held-out
+    frames before and after (issue 28: where the cameras disagree more than a body model can
+    fix).
+
+    Parameters
+    ----------
+    rig, skeleton, labels, bodyparts, likelihood, pcutoff
+        As :func:`evaluate`.
+    train_frames : sequence of int, optional
+        Frames the calibration is refined on (default every other labelled frame, the
+        others are held out).
+    intrinsics : bool
+        Refine focal lengths and principal points too.
+    **options
+        Passed to :func:`evaluate` (``relearn``, ``elastic``, ...).
+
+    Returns
+    -------
+    RefinedEvaluation
+    """
+    from .calibration.keypoints import refine_on_keypoints
+
+    lab, cols, lik = _labels_array(labels, bodyparts)
+    if likelihood is None:
+        likelihood = lik
+    if likelihood is not None and pcutoff > 0:
+        lab = np.where((np.asarray(likelihood) >= pcutoff)[..., None], lab, np.nan)
+    n_frames = lab.shape[1]
+    labelled = np.flatnonzero(np.isfinite(lab).all(axis=-1).any(axis=(0, 2)))
+    train = labelled[::2] if train_frames is None else np.asarray(train_frames, int)
+    test = np.setdiff1d(labelled, train)
+    if not (train.size and test.size) or train.min() < 0 or train.max() >= n_frames:
+        raise ValueError(
+            f"need training and held-out frames among the {labelled.size} labelled frames "
+            f"(train_frames within 0..{n_frames - 1})"
+        )
+    # every labelled column is a calibration target, in the skeleton or not
+    ref = refine_on_keypoints(rig, lab[:, train], intrinsics=intrinsics)
+    held = lab[:, test]
+    before = evaluate(rig, skeleton, held, bodyparts=cols, **options)
+    after = evaluate(ref.rig, skeleton, held, bodyparts=cols, **options)
+    return RefinedEvaluation(before, after, ref, train, test)

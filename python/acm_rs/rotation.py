@@ -67,17 +67,19 @@ def rodrigues_jacobian(r: np.ndarray) -> np.ndarray:
     return out.reshape(arr.shape[:-1] + (3, 3, 3))
 
 
-def wrap_rotation_vectors(r: np.ndarray) -> np.ndarray:
-    """The same rotations with the shortest Rodrigues vectors: ``(..., 3)`` -> ``(..., 3)``
-    with norm <= pi, along the same axis (``r (1 - 2 pi k / |r|)``). A vector that is 0 in a
-    component stays 0 there.
+def wrap_rotation_vectors(r: np.ndarray, beyond: float = 1.5 * np.pi) -> np.ndarray:
+    """The same rotations with short Rodrigues vectors: each vector longer than ``beyond``
+    (rad) becomes the shortest one of its rotation (norm <= pi, same axis line,
+    ``r (1 - 2 pi k / |r|)``); shorter ones are returned unchanged. A vector that is 0 in a
+    component stays 0 there. ``(..., 3)`` -> ``(..., 3)``.
 
-    An unbounded per-frame fit can end at ``|r|`` of many pi (the same rotation); there the
-    map ``r -> R`` is nearly singular (its Jacobian is at ``|r| = 2 pi k``) and a filter
-    started there cannot move the bone (a tracked ear stuck 10-25 px off for 40 frames)."""
+    An unbounded per-frame fit can end at ``|r|`` of many pi (the same rotation); near
+    ``|r| = 2 pi k`` the map ``r -> R`` is singular and a filter started there cannot move
+    the bone (a tracked ear stuck 10-25 px off for 40 frames). The default leaves vectors up
+    to 1.5 pi alone (a quarter turn from the singularity)."""
     r = np.asarray(r, dtype=np.float64)
     theta = np.linalg.norm(r, axis=-1, keepdims=True)
     wrapped = theta - 2.0 * np.pi * np.round(theta / (2.0 * np.pi))
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(theta > np.pi, r * (wrapped / theta), r)
+        out = np.where(theta > beyond, r * (wrapped / theta), r)
     return out

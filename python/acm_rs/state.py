@@ -268,11 +268,11 @@ class StateMap:
         the first frame on, with ``|z| <= 0.5`` and below (``benches/bench_long.py``). Entries
         already there, and unbounded ones (``t``, the global rotation), are unchanged.
 
-        The rotation of a bone without limits (its components unbounded or fixed at 0) starts
-        at its shortest Rodrigues vector, ``|r| <= π``
+        The rotation of a bone without limits (its components unbounded or fixed at 0) with
+        ``|r| > 1.5 π`` starts at its shortest Rodrigues vector, ``|r| <= π``
         (:func:`acm_rs.rotation.wrap_rotation_vectors`): an unbounded fit can return the same
-        rotation at ``|r|`` of many π, where the map is nearly singular and the filter cannot
-        move the bone."""
+        rotation at ``|r|`` of many π, near whose multiples of 2π the map is singular and the
+        filter cannot move the bone."""
         lim = self.skeleton.joint_limits  # (n_bones, 3, 2)
         free_or_zero = (np.isinf(lim[..., 0]) & np.isinf(lim[..., 1])) | (
             (lim[..., 0] == 0) & (lim[..., 1] == 0)
