@@ -297,6 +297,34 @@ pub fn emission_batch(
     Ok(out)
 }
 
+/// Forward kinematics of one state (Alg. 4 lines 1-3 ∘ Alg. 1) with the state's own bone
+/// lengths (elastic bones stretched, [`StateMap::with_stretch`]): joints (optional) and
+/// markers into flat `(J, 3)` / `(M, 3)` buffers; `pose` (`n_pose`) and `lengths`
+/// (`n_bones`) are scratch.
+#[allow(clippy::too_many_arguments)]
+pub fn state_forward_into(
+    skeleton: &Skeleton,
+    map: &StateMap,
+    z: &[f64],
+    ws: &mut crate::skeleton::FkWorkspace,
+    pose: &mut [f64],
+    lengths: &mut [f64],
+    joints: Option<&mut [f64]>,
+    markers: &mut [f64],
+) {
+    map.to_pose_into(z, pose, None);
+    map.lengths_into(z, skeleton.lengths(), lengths);
+    skeleton.forward_flat_into(
+        &pose[..3],
+        &pose[3..],
+        lengths,
+        skeleton.offsets(),
+        ws,
+        joints,
+        markers,
+    );
+}
+
 /// Like [`emission_batch`], writing into a caller-provided `(N, n_cams · M · 2)` buffer;
 /// the states shared among rayon's threads if `parallel`, else all on the calling thread
 /// (no hand-off to the pool: nothing is allocated once the thread's scratch is sized, and

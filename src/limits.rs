@@ -78,6 +78,27 @@ pub enum EntryMap {
     },
 }
 
+/// Checks a list of elastic bones: each an index below `n_bones`, none twice.
+///
+/// # Errors
+/// Invalid error naming the first bad entry.
+pub fn check_elastic_bones(bones: &[usize], n_bones: usize) -> Result<()> {
+    let mut seen = vec![false; n_bones];
+    for &b in bones {
+        if b >= n_bones {
+            return Err(AcmError::Invalid(format!(
+                "elastic bone {b} does not exist (the skeleton has {n_bones} bones)"
+            )));
+        }
+        if std::mem::replace(&mut seen[b], true) {
+            return Err(AcmError::Invalid(format!(
+                "elastic bone {b} is listed twice"
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// Map between the state `z` (free entries, normalised, optionally erf-constrained) and the
 /// full pose `[t, r]`, optionally followed by the log-stretch of elastic bones (issue 28:
 /// `l_b exp(z)`, see [`StateMap::with_stretch`]).
@@ -172,20 +193,7 @@ impl StateMap {
     /// # Errors
     /// Invalid error for a bone index out of range or listed twice.
     pub fn with_stretch(mut self, bones: &[usize]) -> Result<Self> {
-        let nb = (self.n_pose - 3) / 3;
-        let mut seen = vec![false; nb];
-        for &b in bones {
-            if b >= nb {
-                return Err(AcmError::Invalid(format!(
-                    "elastic bone {b} does not exist (the skeleton has {nb} bones)"
-                )));
-            }
-            if std::mem::replace(&mut seen[b], true) {
-                return Err(AcmError::Invalid(format!(
-                    "elastic bone {b} is listed twice"
-                )));
-            }
-        }
+        check_elastic_bones(bones, (self.n_pose - 3) / 3)?;
         self.stretch = bones.to_vec();
         Ok(self)
     }

@@ -176,6 +176,16 @@ def _elastic_fold(rig, skeleton, sub, t, r, learn_sd: bool) -> np.ndarray:
     return project_stretched(rig, fit.skeleton, fit.t, fit.r, fit.lengths)
 
 
+def _masked_labels(labels, bodyparts, likelihood, pcutoff: float):
+    """``(points (C, F, K, 2) with scores below pcutoff set to NaN, column names)``."""
+    lab, cols, lik = _labels_array(labels, bodyparts)
+    if likelihood is None:
+        likelihood = lik
+    if likelihood is not None and pcutoff > 0:
+        lab = np.where((np.asarray(likelihood) >= pcutoff)[..., None], lab, np.nan)
+    return lab, cols
+
+
 def _labels_array(labels, bodyparts):
     if hasattr(labels, "points") and hasattr(labels, "bodyparts"):
         return (np.asarray(labels.points, dtype=np.float64), list(labels.bodyparts),
@@ -229,9 +239,7 @@ def evaluate(
     import time
 
     start = time.perf_counter()
-    lab, cols, lik = _labels_array(labels, bodyparts)
-    if likelihood is None:
-        likelihood = lik
+    lab, cols = _masked_labels(labels, bodyparts, likelihood, pcutoff)
     if lab.ndim != 4 or lab.shape[0] != len(rig) or lab.shape[2] != len(cols):
         raise ValueError(
             f"labels must have shape ({len(rig)} cameras, frames, {len(cols)} columns, 2), "
@@ -242,8 +250,6 @@ def evaluate(
             f"leave-one-camera-out needs >= 3 cameras (2 to predict from, 1 held out); "
             f"the rig has {len(rig)}"
         )
-    if likelihood is not None and pcutoff > 0:
-        lab = np.where((np.asarray(likelihood) >= pcutoff)[..., None], lab, np.nan)
     unknown = [m for m in skeleton.marker_names if m not in cols]
     if unknown:
         raise ValueError(
@@ -358,11 +364,7 @@ def evaluate_refined(
     """
     from .calibration.keypoints import refine_on_keypoints
 
-    lab, cols, lik = _labels_array(labels, bodyparts)
-    if likelihood is None:
-        likelihood = lik
-    if likelihood is not None and pcutoff > 0:
-        lab = np.where((np.asarray(likelihood) >= pcutoff)[..., None], lab, np.nan)
+    lab, cols = _masked_labels(labels, bodyparts, likelihood, pcutoff)
     n_frames = lab.shape[1]
     labelled = np.flatnonzero(np.isfinite(lab).all(axis=-1).any(axis=(0, 2)))
     train = labelled[::2] if train_frames is None else np.asarray(train_frames, int)

@@ -84,20 +84,7 @@ impl LearningProblem {
         ensure_len(lower.len(), nz, "lower state bounds")?;
         ensure_len(upper.len(), nz, "upper state bounds")?;
         let ne = stretch_bones.len();
-        let nb = self.skeleton.n_bones();
-        let mut seen = vec![false; nb];
-        for &b in stretch_bones {
-            if b >= nb {
-                return Err(AcmError::Invalid(format!(
-                    "elastic bone {b} does not exist (the skeleton has {nb} bones)"
-                )));
-            }
-            if std::mem::replace(&mut seen[b], true) {
-                return Err(AcmError::Invalid(format!(
-                    "elastic bone {b} is listed twice"
-                )));
-            }
-        }
+        crate::limits::check_elastic_bones(stretch_bones, self.skeleton.n_bones())?;
         ensure_len(stretch_sd.len(), ne, "stretch SDs (one per elastic bone)")?;
         if let Some(e) = stretch_sd.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
             return Err(AcmError::Invalid(format!(

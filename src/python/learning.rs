@@ -137,11 +137,7 @@ impl PyLearning {
         let xs = view(&x, "x", &[Some(self.inner.n_params())])?;
         let lo = view(&lower, "lower", &[None])?;
         let hi = view(&upper, "upper", &[None])?;
-        let bones: Vec<usize> = view(&stretch_bones, "stretch_bones", &[None])?
-            .iter()
-            .map(|&b| usize::try_from(b))
-            .collect::<Result<_, _>>()
-            .map_err(|_| pyo3::exceptions::PyValueError::new_err("negative bone index"))?;
+        let bones = super::tracking::bone_list(Some(&stretch_bones))?;
         let ne = bones.len();
         let f = self.inner.n_frames();
         let sd = view(&stretch_sd, "stretch_sd", &[Some(ne)])?;

@@ -672,17 +672,7 @@ impl PyStateMap {
                             )
                         },
                         |(ws, pose, len), ((j, m), z)| {
-                            map.to_pose_into(z, pose, None);
-                            map.lengths_into(z, sk.lengths(), len);
-                            sk.forward_flat_into(
-                                &pose[..3],
-                                &pose[3..],
-                                len,
-                                sk.offsets(),
-                                ws,
-                                Some(j),
-                                m,
-                            );
+                            emission::state_forward_into(sk, map, z, ws, pose, len, Some(j), m);
                         },
                     )
             });

@@ -7,6 +7,7 @@
 use super::dense::cholesky;
 use super::filter::sigma_points;
 use super::model::SkeletonEmission;
+use crate::emission::state_forward_into;
 use crate::error::{ensure_len, Result};
 use rayon::prelude::*;
 
@@ -68,9 +69,7 @@ pub fn posterior_poses(
             },
             |(ws, sigma, pose, jb, mb, len), (t, ((((po, jo), mo), js), ms))| -> Result<()> {
                 let mu = &means[t * n..(t + 1) * n];
-                model.map.to_pose_into(mu, po, None);
-                model.map.lengths_into(mu, sk.lengths(), len);
-                sk.forward_flat_into(&po[..3], &po[3..], len, sk.offsets(), ws, Some(jo), mo);
+                state_forward_into(sk, &model.map, mu, ws, po, len, Some(jo), mo);
                 let l = cholesky(&covs[t * n * n..(t + 1) * n * n], n, &|| {
                     format!("the posterior covariance of frame {t}")
                 })?;
@@ -80,18 +79,7 @@ pub fn posterior_poses(
                 let mut msum = vec![0.0; nm * 3];
                 let mut msq = vec![0.0; nm * 3];
                 for z in sigma.chunks_exact(n) {
-                    model.map.to_pose_into(z, pose, None);
-                    model.map.lengths_into(z, sk.lengths(), len);
-                    sk.forward_flat_into(
-                        &pose[..3],
-                        &pose[3..],
-                        len,
-                        sk.offsets(),
-                        ws,
-                        Some(jb),
-                        mb,
-                    );
-                    // Shifted by the mean pose's values (no cancellation in E[x²] − E[x]²).
+                    state_forward_into(sk, &model.map, z, ws, pose, len, Some(jb), mb);
                     for (k, v) in jb.iter().enumerate() {
                         let d = v - jo[k];
                         jsum[k] += d;
