@@ -169,3 +169,24 @@ def test_wrapped_rotation_vectors_are_the_same_rotations():
     out = wrap_rotation_vectors(mid)
     np.testing.assert_array_equal(out[0], mid[0])
     np.testing.assert_allclose(out[1], [0.0, -0.3 * np.pi, 0.0])
+
+
+def test_paths_without_elastic_segments_say_so(case, tmp_path):
+    """The online tracker, acm-smooth bundles and the bounded-memory path keep the mean
+    lengths: each says so, and parameters of an elastic track are refused by the online one."""
+    from acm_rs import OnlineTracker
+    from acm_rs.tracking.bundle import write_bundle
+
+    rig, det, sk = case["rig"], case["det"], case["skeleton"]
+    with pytest.raises(ValueError, match="elastic=False"):
+        OnlineTracker.from_result(case["elastic"])
+    with pytest.warns(UserWarning, match="online tracker keeps every bone at its mean length"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            rigid = acm_rs.track(rig, sk, det[:, :60], elastic=False, max_iter=3)
+        OnlineTracker.from_result(rigid)
+    with pytest.warns(UserWarning, match="acm-smooth keeps every bone at its mean length"):
+        write_bundle(tmp_path / "b.npz", rig, sk, det[:, :30], max_iter=2)
+    with pytest.warns(UserWarning, match="bounded-memory path"):
+        acm_rs.track(rig, sk, det[:, :120], memory_limit=1e5, max_iter=2)
+

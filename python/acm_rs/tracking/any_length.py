@@ -7,7 +7,6 @@ windows, the exact streaming smoother), with the same :class:`PoseResult` back.
 from __future__ import annotations
 
 import inspect
-import warnings
 
 import numpy as np
 
@@ -22,6 +21,7 @@ from .track import (
     default_memory_limit,
     in_memory_bytes,
     track_in_memory,
+    warn_rigid_lengths,
 )
 
 #: Options of :func:`track_in_memory` that the bounded-memory path passes on.
@@ -86,14 +86,8 @@ def track(
             unknown = set(options) - set(_BOUNDED_OPTIONS) - set(_DEFAULTS) - {"method", "elastic"}
             if unknown:
                 raise TypeError(f"track() got unexpected keyword argument(s) {sorted(unknown)}")
-            if skeleton.stretch_sd.any() and options.get("elastic", True):
-                warnings.warn(
-                    "the bounded-memory path keeps every bone at its mean length: the "
-                    "skeleton's elastic segments are tracked by the in-memory EM only "
-                    "(raise memory_limit, or pass elastic=False to silence this)",
-                    UserWarning,
-                    stacklevel=2,
-                )
+            if options.get("elastic", True) is not False:
+                warn_rigid_lengths(skeleton, "the bounded-memory path (raise memory_limit)")
             return track_bounded(
                 rig, skeleton, detections, need=need, limit=limit,
                 **{k: v for k, v in options.items() if k in _BOUNDED_OPTIONS},

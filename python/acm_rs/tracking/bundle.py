@@ -27,6 +27,7 @@ from .track import (
     _measurements,
     default_normalization,
     gate_threshold,
+    warn_rigid_lengths,
 )
 
 
@@ -59,6 +60,7 @@ def write_bundle(
     pathlib.Path
         The bundle's path.
     """
+    warn_rigid_lengths(skeleton, "acm-smooth")
     if stop not in ("loglik", "alg13"):
         raise ValueError(f"stop must be 'loglik' or 'alg13', got {stop!r}")
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)

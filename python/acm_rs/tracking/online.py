@@ -16,7 +16,7 @@ from ..camera import CameraRig
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
 from .result import PoseResult
-from .track import DEFAULT_GATE, MOTION_ORDER, _first_pose, gate_threshold
+from .track import DEFAULT_GATE, MOTION_ORDER, _first_pose, gate_threshold, warn_rigid_lengths
 
 
 class OnlineTracker:
@@ -100,6 +100,13 @@ class OnlineTracker:
         self.serial = bool(serial)
         self._sm = StateMap(skeleton, normalization, joint_limits)
         ns = self.order * self._sm.n_state
+        stretched = self.order * StateMap(skeleton, normalization, joint_limits, True).n_state
+        if skeleton.stretch_sd.any() and self.params["mu0"].shape == (stretched,):
+            raise ValueError(
+                "these parameters come from a track with elastic segments, which the online "
+                "tracker does not follow yet: learn them with acm_rs.track(..., elastic=False)"
+            )
+        warn_rigid_lengths(skeleton, "the online tracker")
         if self.params["mu0"].shape != (ns,):
             raise ValueError(
                 f"params['mu0'] has shape {self.params['mu0'].shape}, the {motion} state of "

@@ -11,6 +11,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -242,6 +243,19 @@ def _deterministic(
     )  # fmt: skip
     _, _, _, poses = problem.residuals(np.ascontiguousarray(z.ravel()))
     return poses[:, :3], poses[:, 3:].reshape(len(poses), skeleton.n_bones, 3)
+
+
+def warn_rigid_lengths(skeleton: Skeleton, where: str) -> None:
+    """One warning when ``where`` keeps the skeleton's elastic segments at their mean
+    lengths (only the in-memory :func:`track_in_memory` tracks their stretch)."""
+    n = int(np.count_nonzero(skeleton.stretch_sd))
+    if n:
+        warnings.warn(
+            f"{where} keeps every bone at its mean length: the skeleton's {n} elastic "
+            "segments are tracked by acm_rs.track in memory only",
+            UserWarning,
+            stacklevel=3,
+        )
 
 
 def _in_rig_units(
