@@ -189,4 +189,3 @@ def test_paths_without_elastic_segments_say_so(case, tmp_path):
         write_bundle(tmp_path / "b.npz", rig, sk, det[:, :30], max_iter=2)
     with pytest.warns(UserWarning, match="bounded-memory path"):
         acm_rs.track(rig, sk, det[:, :120], memory_limit=1e5, max_iter=2)
-
