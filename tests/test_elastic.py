@@ -146,3 +146,18 @@ def test_projection_with_per_frame_lengths_is_forward_kinematics(mouse):
         rig, sk, rigid.t[:2], rigid.r[:2], np.repeat(sk.bone_lengths[None], 2, 0)
     )
     np.testing.assert_allclose(same, sk.project(rig, rigid.t[:2], rigid.r[:2]), atol=1e-9)
+
+
+def test_learn_stretch_refuses_bad_input(mouse):
+    rig, names, lab2, lab3, rigid = mouse
+    lab = lab2[:, :, [names.index(k) for k in rigid.skeleton.marker_names]]
+    with pytest.raises(ValueError, match="no elastic bones"):
+        learn_stretch(rig, rigid.skeleton, lab, bones=[])
+    with pytest.raises(ValueError, match="must be > 0"):
+        learn_stretch(rig, rigid.skeleton, lab, initial_sd=0.0)
+    with pytest.raises(ValueError, match="init must be t"):
+        learn_stretch(rig, rigid.skeleton, lab, init=(rigid.t[:3], rigid.r[:3]))
+    with pytest.raises(ValueError, match="no bone|unknown|not found"):
+        learn_stretch(rig, rigid.skeleton, lab, bones=["NoSuchBone"])
+    with pytest.raises(ValueError, match="cameras but the rig has"):
+        learn_stretch(rig, rigid.skeleton, lab[:3])
