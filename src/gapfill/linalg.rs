@@ -51,11 +51,14 @@ pub fn spd_inverse(m: &DMatrix<f64>, what: &str) -> Result<DMatrix<f64>> {
 /// Replaces `m` by `(m + mᵀ) / 2`.
 pub fn symmetrize(m: &mut DMatrix<f64>) {
     let n = m.nrows();
+    assert_eq!(n, m.ncols(), "symmetrize needs a square matrix");
+    let s = m.as_mut_slice();
     for i in 0..n {
         for j in (i + 1)..n {
-            let a = 0.5 * (m[(i, j)] + m[(j, i)]);
-            m[(i, j)] = a;
-            m[(j, i)] = a;
+            // (i, j) is at j·n + i, (j, i) at i·n + j (column-major).
+            let a = 0.5 * (s[j * n + i] + s[i * n + j]);
+            s[j * n + i] = a;
+            s[i * n + j] = a;
         }
     }
 }
@@ -85,32 +88,69 @@ pub fn sorted_eigen(m: DMatrix<f64>) -> (Vec<f64>, DMatrix<f64>) {
     (vals, vecs)
 }
 
+/// Columns of a row of `W` accumulated in registers by [`lower_inverse_rows`] and rows of a
+/// column of `WᵀW` by [`gram_rows`].
+const TILE: usize = 8;
+
 dispatch!(
-    fn lower_inverse_kernel(ls: &[f64], ws: &mut [f64], n: usize) -> () {
-        let mut dinv = [0.0f64; 128];
-        let big = n > dinv.len();
-        if !big {
-            for j in 0..n {
-                dinv[j] = 1.0 / ls[j * n + j];
-            }
+    /// `W = L⁻¹` of the column-major lower-triangular `L` (`ls`) into `wr`, **row-major** with
+    /// zeros above the diagonal: row `i` is `(e_i − Σ_{j<i} L_ij W_j·) / L_ii`, eight columns
+    /// at a time in registers. Each entry subtracts its terms in ascending `j` (the terms with
+    /// `j` below its column are exact zeros), so the values are those of column-by-column
+    /// forward substitution bit for bit.
+    fn lower_inverse_rows(ls: &[f64], wr: &mut [f64], n: usize) -> () {
+        let mut stack = [0.0f64; 2 * 128];
+        let mut heap = Vec::new();
+        let buf: &mut [f64] = if n <= 128 {
+            &mut stack[..2 * n]
+        } else {
+            heap.resize(2 * n, 0.0);
+            &mut heap
+        };
+        let (dinv, lrow) = buf.split_at_mut(n);
+        for j in 0..n {
+            dinv[j] = 1.0 / ls[j * n + j];
         }
-        for c in 0..n {
-            let col = &mut ws[c * n..(c + 1) * n];
-            col[c] = 1.0;
-            for j in c..n {
-                let lj = &ls[j * n..(j + 1) * n];
-                let v = if big {
-                    col[j] / lj[j]
-                } else {
-                    col[j] * dinv[j]
-                };
-                col[j] = v;
-                if v != 0.0 {
-                    for (x, y) in col[j + 1..].iter_mut().zip(&lj[j + 1..]) {
-                        *x -= v * y;
+        for i in 0..n {
+            for (j, l) in lrow[..i].iter_mut().enumerate() {
+                *l = ls[j * n + i];
+            }
+            let di = dinv[i];
+            let (done, rest) = wr.split_at_mut(i * n);
+            let row = &mut rest[..n];
+            let mut c0 = 0;
+            // Whole tiles: fixed-size accumulators and stores (kept in registers).
+            while c0 + TILE <= i + 1 {
+                let mut acc = [0.0f64; TILE];
+                for (q, a) in acc.iter_mut().enumerate() {
+                    *a = if c0 + q == i { 1.0 } else { 0.0 };
+                }
+                for (j, &f) in lrow[..i].iter().enumerate().skip(c0) {
+                    let src: &[f64; TILE] = done[j * n + c0..j * n + c0 + TILE].try_into().unwrap();
+                    for q in 0..TILE {
+                        acc[q] -= f * src[q];
                     }
                 }
+                let dst: &mut [f64; TILE] = (&mut row[c0..c0 + TILE]).try_into().unwrap();
+                for q in 0..TILE {
+                    dst[q] = acc[q] * di;
+                }
+                c0 += TILE;
             }
+            // The rest of the row up to the diagonal, in place.
+            for (q, o) in row[c0..=i].iter_mut().enumerate() {
+                *o = if c0 + q == i { 1.0 } else { 0.0 };
+            }
+            for (j, &f) in lrow[..i].iter().enumerate().skip(c0) {
+                let src = &done[j * n + c0..j * n + i + 1];
+                for (o, w) in row[c0..=i].iter_mut().zip(src) {
+                    *o -= f * w;
+                }
+            }
+            for o in &mut row[c0..=i] {
+                *o *= di;
+            }
+            row[i + 1..].fill(0.0);
         }
     }
 );
@@ -142,36 +182,49 @@ pub fn cholesky_lower(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
     chol_kernel(l.as_mut_slice(), n).then_some(l)
 }
 
-/// Inverse `L⁻¹` of a lower-triangular matrix with a positive diagonal (column-oriented).
+/// Inverse `L⁻¹` of a lower-triangular matrix with a positive diagonal.
 pub fn lower_inverse(l: &DMatrix<f64>) -> DMatrix<f64> {
     let n = l.nrows();
-    let mut w = DMatrix::<f64>::zeros(n, n);
-    lower_inverse_kernel(l.as_slice(), w.as_mut_slice(), n);
-    w
+    let mut wr = vec![0.0; n * n];
+    lower_inverse_rows(l.as_slice(), &mut wr, n);
+    // Row-major W is column-major Wᵀ.
+    DMatrix::from_column_slice(n, n, &wr).transpose()
 }
 
 dispatch!(
-    fn gram_lower_kernel(ws: &[f64], ts: &mut [f64], out: &mut [f64], n: usize) -> () {
-        // ts = Wᵀ (column i of ts = row i of W: entries 0..=i contiguous).
-        for c in 0..n {
-            for r in c..n {
-                ts[r * n + c] = ws[c * n + r];
-            }
-        }
-        // Column b of the lower triangle: M[b..=i, b] += W_ib · W[i, b..=i] over i ≥ b.
+    /// `WᵀW` (column-major, symmetric) for the row-major lower-triangular `W` (`wr`, zeros above
+    /// the diagonal, as [`lower_inverse_rows`] writes it). Each entry
+    /// `M[a, b] = Σ_{i ≥ a} W_ia W_ib` (`a ≥ b`) is summed in ascending `i`, eight rows of a
+    /// column at a time in registers; the upper triangle is mirrored.
+    fn gram_rows(wr: &[f64], out: &mut [f64], n: usize) -> () {
         for b in 0..n {
-            let (wb, ob) = (&ws[b * n..(b + 1) * n], b * n);
-            for i in b..n {
-                let f = wb[i];
-                if f != 0.0 {
-                    let src = &ts[i * n + b..i * n + i + 1];
-                    for (o, t) in out[ob + b..ob + i + 1].iter_mut().zip(src) {
-                        *o += f * t;
+            let mut a0 = b;
+            // Whole tiles: fixed-size accumulators and stores (kept in registers).
+            while a0 + TILE <= n {
+                let mut acc = [0.0f64; TILE];
+                for i in a0..n {
+                    let f = wr[i * n + b];
+                    let row: &[f64; TILE] = wr[i * n + a0..i * n + a0 + TILE].try_into().unwrap();
+                    for q in 0..TILE {
+                        acc[q] += f * row[q];
                     }
+                }
+                let dst: &mut [f64; TILE] = (&mut out[b * n + a0..b * n + a0 + TILE])
+                    .try_into()
+                    .unwrap();
+                *dst = acc;
+                a0 += TILE;
+            }
+            // The rest of the column, in place.
+            let dst = &mut out[b * n + a0..(b + 1) * n];
+            dst.fill(0.0);
+            for i in a0..n {
+                let f = wr[i * n + b];
+                for (o, t) in dst.iter_mut().zip(&wr[i * n + a0..(i + 1) * n]) {
+                    *o += f * t;
                 }
             }
         }
-        // Mirror to the upper triangle.
         for c in 0..n {
             for r in c + 1..n {
                 out[r * n + c] = out[c * n + r];
@@ -184,10 +237,10 @@ dispatch!(
 /// `None`: Cholesky, triangular inverse and the triangular Gram product (`n³` flops in all).
 pub fn spd_inverse_lower(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
     let n = m.nrows();
-    let w = lower_inverse(&cholesky_lower(m)?);
-    let mut t = vec![0.0; n * n];
+    let l = cholesky_lower(m)?;
+    let mut wr = vec![0.0; n * n];
     let mut inv = DMatrix::<f64>::zeros(n, n);
-    gram_lower_kernel(w.as_slice(), &mut t, inv.as_mut_slice(), n);
+    inverse_from_cholesky(l.as_slice(), n, &mut wr, inv.as_mut_slice());
     Some(inv)
 }
 
@@ -234,14 +287,19 @@ pub fn pack_lower(full: &[f64], n: usize, dst: &mut Vec<f64>) {
 /// The symmetric `n × n` matrix (column-major) whose lower triangle is `packed`.
 pub fn unpack_symmetric(packed: &[f64], n: usize) -> DMatrix<f64> {
     let mut m = DMatrix::zeros(n, n);
+    unpack_symmetric_into(packed, n, m.as_mut_slice());
+    m
+}
+
+/// [`unpack_symmetric`] into the column-major `n × n` slice `out`.
+pub fn unpack_symmetric_into(packed: &[f64], n: usize, out: &mut [f64]) {
     for j in 0..n {
         let col = &packed[packed_col(n, j)..packed_col(n, j + 1)];
-        for (i, &v) in col.iter().enumerate() {
-            m[(j + i, j)] = v;
-            m[(j, j + i)] = v;
+        out[j * n + j..(j + 1) * n].copy_from_slice(col);
+        for (i, &v) in col.iter().enumerate().skip(1) {
+            out[(j + i) * n + j] = v;
         }
     }
-    m
 }
 
 /// The lower-triangular `n × n` matrix (column-major) stored packed in `packed`.
@@ -275,28 +333,28 @@ pub fn chol_solve_packed(l: &[f64], n: usize, b: &mut [f64]) {
     }
 }
 
-/// `out += M v` for a symmetric `n × n` matrix `M` given by its packed lower triangle.
-pub fn sym_matvec_packed_add(m: &[f64], n: usize, v: &[f64], out: &mut [f64]) {
-    for j in 0..n {
-        let col = &m[packed_col(n, j)..packed_col(n, j + 1)];
-        // Row j of M (its lower part is column j): diagonal and below.
-        out[j] += dot(col, &v[j..n]);
-        let vj = v[j];
-        if vj != 0.0 {
-            for (o, c) in out[j + 1..n].iter_mut().zip(&col[1..]) {
-                *o += c * vj;
+dispatch!(
+    /// `out += M v` for a symmetric `n × n` matrix `M` given by its packed lower triangle.
+    pub fn sym_matvec_packed_add(m: &[f64], n: usize, v: &[f64], out: &mut [f64]) -> () {
+        for j in 0..n {
+            let col = &m[packed_col(n, j)..packed_col(n, j + 1)];
+            // Row j of M (its lower part is column j): diagonal and below.
+            out[j] += dot(col, &v[j..n]);
+            let vj = v[j];
+            if vj != 0.0 {
+                for (o, c) in out[j + 1..n].iter_mut().zip(&col[1..]) {
+                    *o += c * vj;
+                }
             }
         }
     }
-}
+);
 
 /// `out = A⁻¹` (column-major, symmetric) from the lower Cholesky factor `l` of `A`, using the
-/// scratch buffers `w`, `t` (each `n²`).
-pub fn inverse_from_cholesky(l: &[f64], n: usize, w: &mut [f64], t: &mut [f64], out: &mut [f64]) {
-    w.iter_mut().for_each(|x| *x = 0.0);
-    lower_inverse_kernel(l, w, n);
-    out.iter_mut().for_each(|x| *x = 0.0);
-    gram_lower_kernel(w, t, out, n);
+/// scratch buffer `w` (`n²`): `W = L⁻¹` by rows, then `WᵀW` (`n³/3` multiply-adds).
+pub fn inverse_from_cholesky(l: &[f64], n: usize, w: &mut [f64], out: &mut [f64]) {
+    lower_inverse_rows(l, w, n);
+    gram_rows(w, out, n);
 }
 
 #[cfg(test)]
@@ -322,7 +380,7 @@ mod tests {
 
     #[test]
     fn spd_inverse_lower_matches_nalgebra() {
-        for n in [1usize, 2, 5, 17, 41] {
+        for n in [1usize, 2, 5, 8, 17, 41, 130] {
             let a = DMatrix::from_fn(n, n, |r, c| ((r * 7 + c * 13) % 11) as f64 - 5.0);
             let spd = &a * a.transpose() + DMatrix::identity(n, n) * 0.5;
             let inv = spd_inverse_lower(&spd).unwrap();
@@ -342,6 +400,13 @@ mod tests {
                 assert!((out[i] - 1.0 - expect[i]).abs() < 1e-9 * (1.0 + expect[i].abs()));
             }
             let l = cholesky_lower(&spd).unwrap();
+            // L⁻¹ by rows (whole tiles of 8 and the rest) is a lower-triangular inverse.
+            let li = lower_inverse(&l);
+            assert!(
+                close(&(&li * &l), &DMatrix::identity(n, n), 1e-12),
+                "n = {n}"
+            );
+            assert!((0..n).all(|c| (0..c).all(|r| li[(r, c)] == 0.0)));
             let mut lp = Vec::new();
             pack_lower(l.as_slice(), n, &mut lp);
             assert_eq!(unpack_lower(&lp, n), l);

@@ -661,6 +661,7 @@ impl Setup<'_> {
     }
 
     /// `h ← Λ⁻¹ h` for a low-rank state.
+    #[inline(always)]
     fn solve(&self, states: Pool<'_>, st: &LState, h: &mut [f64], tmp: &mut Vec<f64>) {
         let miss = &self.pats.missing[st.pat as usize];
         let z_old = st.old.map_or(&NO_COLS, |s| &states.get(s).z);
@@ -686,6 +687,7 @@ impl Setup<'_> {
     }
 
     /// `out = M v = μ ∘ v − Z K Zᵀ v` for a low-rank state.
+    #[inline(always)]
     fn gain(&self, st: &LState, v: &[f64], out: &mut [f64], tmp: &mut Vec<f64>) {
         for ((o, x), m) in out.iter_mut().zip(v).zip(&self.mu) {
             *o = m * x;
@@ -870,8 +872,8 @@ fn capacitance(
     t: &mut [f64],
 ) -> bool {
     let qq = qp * qp;
-    let [s, r, w, _, _] = bufs;
-    let (s, r, w) = (&mut s[..qq], &mut r[..qq], &mut w[..qq]);
+    let [s, r, _, _, _] = bufs;
+    let (s, r) = (&mut s[..qq], &mut r[..qq]);
     if q_old == 0 {
         for (o, x) in s.iter_mut().zip(a) {
             *o = -x;
@@ -882,7 +884,7 @@ fn capacitance(
         if !cholesky_in_place(s, qp) {
             return false;
         }
-        inverse_from_cholesky(s, qp, r, w, t);
+        inverse_from_cholesky(s, qp, r, t);
         t.iter_mut().for_each(|x| *x = -*x);
         return true;
     }
@@ -1302,7 +1304,25 @@ impl Ctx<'_> {
     }
 
     /// Continues `run` up to frame `b` (exclusive).
-    fn extend(&self, mut run: Run, b: usize) -> Result<Option<Run>> {
+    fn extend(&self, run: Run, b: usize) -> Result<Option<Run>> {
+        #[cfg(target_arch = "x86_64")]
+        if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU supports the enabled features (checked above).
+            return unsafe { self.extend_wide(run, b) };
+        }
+        self.extend_body(run, b)
+    }
+
+    /// [`Self::extend`] compiled for AVX2 (its per-frame vector loops, and [`Setup::solve`]
+    /// inlined into them, run 4 wide).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn extend_wide(&self, run: Run, b: usize) -> Result<Option<Run>> {
+        self.extend_body(run, b)
+    }
+
+    #[inline(always)]
+    fn extend_body(&self, mut run: Run, b: usize) -> Result<Option<Run>> {
         let setup = self.setup;
         let pats = setup.pats;
         let n = setup.n;
@@ -1427,6 +1447,67 @@ impl Ctx<'_> {
             .zip(m2)
             .all(|(x, y)| (x - y).abs() <= self.setup.tol * scale)
     }
+}
+
+/// Backward pass (A.7) of the means: `m̃_t = m_t + M_t (m̃_{t+1} − m_t)` for the frames
+/// `lo..=start` from `m̃_start = init` (returned from `lo` on).
+fn backward_means(
+    setup: &Setup<'_>,
+    pool: Pool<'_>,
+    run: &Run,
+    lo: usize,
+    start: usize,
+    init: &[f64],
+) -> Vec<f64> {
+    #[cfg(target_arch = "x86_64")]
+    if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+        #[target_feature(enable = "avx2,fma")]
+        unsafe fn wide(
+            setup: &Setup<'_>,
+            pool: Pool<'_>,
+            run: &Run,
+            lo: usize,
+            start: usize,
+            init: &[f64],
+        ) -> Vec<f64> {
+            backward_means_body(setup, pool, run, lo, start, init)
+        }
+        // SAFETY: the CPU supports the enabled features (checked above).
+        return unsafe { wide(setup, pool, run, lo, start, init) };
+    }
+    backward_means_body(setup, pool, run, lo, start, init)
+}
+
+#[inline(always)]
+fn backward_means_body(
+    setup: &Setup<'_>,
+    pool: Pool<'_>,
+    run: &Run,
+    lo: usize,
+    start: usize,
+    init: &[f64],
+) -> Vec<f64> {
+    let n = setup.n;
+    let mf = &run.mf;
+    let mut ms = mf[lo * n..(start + 1) * n].to_vec();
+    ms[(start - lo) * n..].copy_from_slice(init);
+    let (mut diff, mut corr, mut tmp) = (vec![0.0; n], vec![0.0; n], Vec::new());
+    for t in (lo..start).rev() {
+        let i = t - lo;
+        for c in 0..n {
+            diff[c] = ms[(i + 1) * n + c] - mf[t * n + c];
+        }
+        if t < run.dense.len() {
+            let v = &run.dense[t].m * nalgebra::DVector::from_column_slice(&diff);
+            corr.copy_from_slice(v.as_slice());
+        } else {
+            setup.gain(pool.get(run.sof[t]), &diff, &mut corr, &mut tmp);
+        }
+        for (o, cc) in ms[i * n..(i + 1) * n].iter_mut().zip(&corr) {
+            *o += cc;
+        }
+    }
+    ms
 }
 
 /// Filter and RTS smoother means with low-rank states (module docs), or `None` when the model
@@ -1603,27 +1684,8 @@ pub fn smooth_means(
     // Backward pass (A.7): m̃_t = m_t + M_t (m̃_{t+1} − m_t), frames `lo..=start` from
     // m̃_start = `init` (returned from `lo` on).
     let mf = &run.mf;
-    let backward = |lo: usize, start: usize, init: &[f64]| -> Vec<f64> {
-        let mut ms = mf[lo * n..(start + 1) * n].to_vec();
-        ms[(start - lo) * n..].copy_from_slice(init);
-        let (mut diff, mut corr, mut tmp) = (vec![0.0; n], vec![0.0; n], Vec::new());
-        for t in (lo..start).rev() {
-            let i = t - lo;
-            for c in 0..n {
-                diff[c] = ms[(i + 1) * n + c] - mf[t * n + c];
-            }
-            if t < run.dense.len() {
-                let v = &run.dense[t].m * nalgebra::DVector::from_column_slice(&diff);
-                corr.copy_from_slice(v.as_slice());
-            } else {
-                setup.gain(pool.get(run.sof[t]), &diff, &mut corr, &mut tmp);
-            }
-            for (o, cc) in ms[i * n..(i + 1) * n].iter_mut().zip(&corr) {
-                *o += cc;
-            }
-        }
-        ms
-    };
+    let backward =
+        |lo: usize, start: usize, init: &[f64]| backward_means(&setup, pool, &run, lo, start, init);
     let last = &mf[(t_len - 1) * n..];
     let ms = if rayon::current_num_threads() >= 2 && t_len >= 2 * MIN_FORWARD {
         // Two halves in parallel: the second exact from the last frame, the first started
