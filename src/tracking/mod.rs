@@ -197,6 +197,93 @@ pub struct Tracker<E: Emission> {
     has_statistics: bool,
     /// Whether the moments are those of a filter pass (not smoothed yet).
     filtered_only: bool,
+    /// How each filter step uses the pool's threads.
+    frame_parallelism: FrameParallelism,
+}
+
+/// How a filter step uses the threads of the rayon pool ([`Tracker::set_frame_parallelism`]).
+/// Both modes give the same moments bit for bit (each sigma point, Gram entry and solved
+/// column is computed by the same operations on either thread).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FrameParallelism {
+    /// Time both modes on [`MODE_TRIAL`] alternating frames each early in every
+    /// [`MODE_PERIOD`] frames and keep the faster by median (default). On the 2-vCPU machine of
+    /// `benches/README.md` one thread per frame was faster for the 50-entry rat (2,035 vs
+    /// 1,790 frames/s) and both 100- and 174-entry velocity states; two were faster for the
+    /// 87-entry random walk (770 vs 694).
+    Auto,
+    /// Every step on the calling thread.
+    Serial,
+    /// Sigma points, Gram matrix and solves of every step shared between the pool's threads.
+    Parallel,
+}
+
+/// Frames per mode of each timing trial of [`FrameParallelism::Auto`].
+pub const MODE_TRIAL: usize = 16;
+/// Frames between two timing trials of [`FrameParallelism::Auto`] (the load of the machine
+/// may change during a long recording).
+pub const MODE_PERIOD: usize = 4096;
+/// Frames of each period before its trial (the first frames of a recording relinearise from
+/// the broad prior and are not typical).
+const MODE_SKIP: usize = 48;
+
+/// The per-frame mode of [`FrameParallelism::Auto`]: in a trial of `2 · MODE_TRIAL` frames
+/// after the first [`MODE_SKIP`] of each period, parallel and serial frames alternate; then
+/// the faster by median step time (serial before the first trial).
+struct ModeChooser {
+    fixed: Option<bool>,
+    serial_faster: bool,
+    times: [[f64; MODE_TRIAL]; 2],
+}
+
+impl ModeChooser {
+    fn new(mode: FrameParallelism, threads: usize) -> Self {
+        let fixed = match mode {
+            FrameParallelism::Serial => Some(true),
+            FrameParallelism::Parallel => Some(false),
+            FrameParallelism::Auto if threads <= 1 => Some(true),
+            FrameParallelism::Auto => None,
+        };
+        Self {
+            fixed,
+            serial_faster: true,
+            times: [[0.0; MODE_TRIAL]; 2],
+        }
+    }
+
+    /// The position of frame `t` in the trial of its period (`None` outside it).
+    fn trial(&self, t: usize) -> Option<usize> {
+        let p = (t % MODE_PERIOD).checked_sub(MODE_SKIP)?;
+        (self.fixed.is_none() && p < 2 * MODE_TRIAL).then_some(p)
+    }
+
+    /// Whether frame `t` runs serially (in a trial: every other frame).
+    fn serial(&self, t: usize) -> bool {
+        match (self.fixed, self.trial(t)) {
+            (Some(s), _) => s,
+            (None, Some(p)) => p % 2 == 1,
+            (None, None) => self.serial_faster,
+        }
+    }
+
+    /// Whether frame `t` is timed.
+    fn timed(&self, t: usize) -> bool {
+        self.trial(t).is_some()
+    }
+
+    /// Records the step time of a timed frame `t`.
+    fn record(&mut self, t: usize, seconds: f64) {
+        let Some(p) = self.trial(t) else { return };
+        self.times[p % 2][p / 2] = seconds;
+        if p + 1 == 2 * MODE_TRIAL {
+            let median = |v: &[f64; MODE_TRIAL]| {
+                let mut v = *v;
+                v.sort_by(f64::total_cmp);
+                v[MODE_TRIAL / 2]
+            };
+            self.serial_faster = median(&self.times[1]) <= median(&self.times[0]);
+        }
+    }
 }
 
 /// Default maximum number of iterated posterior linearisations per frame (see
@@ -247,6 +334,7 @@ impl<E: Emission> Tracker<E> {
             hint: None,
             has_statistics: false,
             filtered_only: false,
+            frame_parallelism: FrameParallelism::Auto,
         })
     }
 
@@ -370,6 +458,12 @@ impl<E: Emission> Tracker<E> {
         self.relinearize = k;
     }
 
+    /// Sets how each filter step uses the pool's threads (default
+    /// [`FrameParallelism::Auto`]). The moments do not depend on it.
+    pub fn set_frame_parallelism(&mut self, mode: FrameParallelism) {
+        self.frame_parallelism = mode;
+    }
+
     /// Runs the unscented Kalman filter (Alg. 7) only: afterwards [`Self::means`] and
     /// [`Self::covs`] hold the filtered moments.
     ///
@@ -404,7 +498,10 @@ impl<E: Emission> Tracker<E> {
         let n = self.n_state();
         let mut ws = filter::Workspace::new(self.em.n_state(), n_x);
         let mut stats = FilterStats::default();
+        let mut mode = ModeChooser::new(self.frame_parallelism, rayon::current_num_threads());
         for t in 0..self.n_frames {
+            ws.serial = mode.serial(t);
+            let clock = mode.timed(t).then(Instant::now);
             let (mh, mt) = self.means.split_at_mut((t + 1) * n);
             let (ch, ct) = self.covs.split_at_mut((t + 1) * n * n);
             filter::step(
@@ -430,6 +527,9 @@ impl<E: Emission> Tracker<E> {
                 &mut ct[..n * n],
                 &mut stats,
             )?;
+            if let Some(c) = clock {
+                mode.record(t, c.elapsed().as_secs_f64());
+            }
         }
         Ok(stats)
     }
