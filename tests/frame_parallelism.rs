@@ -2,7 +2,8 @@
 //! thread, and the automatic choice between them (timed on alternating frames, then the
 //! faster) give the same moments bit for bit — so choosing by timing cannot change a result.
 
-use acm_rs::camera::Camera;
+mod common;
+
 use acm_rs::limits::StateMap;
 use acm_rs::normalization::Normalization;
 use acm_rs::skeleton::Skeleton;
@@ -48,16 +49,7 @@ fn model() -> SkeletonEmission {
     let norm = Normalization::default();
     let (lo, hi): (Vec<f64>, Vec<f64>) = (0..3 * nb).map(|_| (-1.2, 1.2)).unzip();
     let map = StateMap::new(nb, &lo, &hi, &norm, true).unwrap();
-    let cams: Vec<f64> = (0..6)
-        .flat_map(|i| {
-            let a = -0.75 + 0.3 * i as f64;
-            [
-                0.0, a, 0.0, 0.0, -5.0, 60.0, 1000.0, 1000.0, 640.0, 512.0, -0.1, 0.02, 0.0, 0.0,
-                0.0,
-            ]
-        })
-        .collect();
-    SkeletonEmission::new(sk, Camera::many_from_rows(&cams, 15).unwrap(), map, norm).unwrap()
+    SkeletonEmission::new(sk, common::ring_rig(6), map, norm).unwrap()
 }
 
 #[test]

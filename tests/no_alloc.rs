@@ -6,7 +6,8 @@
 //! which allocates one block every 63 jobs: bounded here. Counted by a global allocator that
 //! this test binary alone installs.
 
-use acm_rs::camera::Camera;
+mod common;
+
 use acm_rs::limits::StateMap;
 use acm_rs::normalization::Normalization;
 use acm_rs::skeleton::Skeleton;
@@ -71,16 +72,7 @@ fn model() -> SkeletonEmission {
         .map(|e| if e % 3 == 2 { (0.0, 0.0) } else { (-1.2, 1.2) })
         .unzip();
     let map = StateMap::new(nb, &lo, &hi, &norm, true).unwrap();
-    let cams: Vec<f64> = (0..4)
-        .flat_map(|i| {
-            let a = -0.45 + 0.3 * i as f64;
-            [
-                0.0, a, 0.0, 0.0, -5.0, 60.0, 1000.0, 1000.0, 640.0, 512.0, -0.1, 0.02, 0.0, 0.0,
-                0.0,
-            ]
-        })
-        .collect();
-    SkeletonEmission::new(sk, Camera::many_from_rows(&cams, 15).unwrap(), map, norm).unwrap()
+    SkeletonEmission::new(sk, common::ring_rig(4), map, norm).unwrap()
 }
 
 /// How a test runs the steps.

@@ -1449,66 +1449,40 @@ impl Ctx<'_> {
     }
 }
 
-/// Backward pass (A.7) of the means: `m̃_t = m_t + M_t (m̃_{t+1} − m_t)` for the frames
-/// `lo..=start` from `m̃_start = init` (returned from `lo` on).
-fn backward_means(
-    setup: &Setup<'_>,
-    pool: Pool<'_>,
-    run: &Run,
-    lo: usize,
-    start: usize,
-    init: &[f64],
-) -> Vec<f64> {
-    #[cfg(target_arch = "x86_64")]
-    if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
-        #[target_feature(enable = "avx2,fma")]
-        unsafe fn wide(
-            setup: &Setup<'_>,
-            pool: Pool<'_>,
-            run: &Run,
-            lo: usize,
-            start: usize,
-            init: &[f64],
-        ) -> Vec<f64> {
-            backward_means_body(setup, pool, run, lo, start, init)
+dispatch!(
+    /// Backward pass (A.7) of the means: `m̃_t = m_t + M_t (m̃_{t+1} − m_t)` for the frames
+    /// `lo..=start` from `m̃_start = init` (returned from `lo` on).
+    fn backward_means(
+        setup: &Setup<'_>,
+        pool: Pool<'_>,
+        run: &Run,
+        lo: usize,
+        start: usize,
+        init: &[f64],
+    ) -> Vec<f64> {
+        let n = setup.n;
+        let mf = &run.mf;
+        let mut ms = mf[lo * n..(start + 1) * n].to_vec();
+        ms[(start - lo) * n..].copy_from_slice(init);
+        let (mut diff, mut corr, mut tmp) = (vec![0.0; n], vec![0.0; n], Vec::new());
+        for t in (lo..start).rev() {
+            let i = t - lo;
+            for c in 0..n {
+                diff[c] = ms[(i + 1) * n + c] - mf[t * n + c];
+            }
+            if t < run.dense.len() {
+                let v = &run.dense[t].m * nalgebra::DVector::from_column_slice(&diff);
+                corr.copy_from_slice(v.as_slice());
+            } else {
+                setup.gain(pool.get(run.sof[t]), &diff, &mut corr, &mut tmp);
+            }
+            for (o, cc) in ms[i * n..(i + 1) * n].iter_mut().zip(&corr) {
+                *o += cc;
+            }
         }
-        // SAFETY: the CPU supports the enabled features (checked above).
-        return unsafe { wide(setup, pool, run, lo, start, init) };
+        ms
     }
-    backward_means_body(setup, pool, run, lo, start, init)
-}
-
-#[inline(always)]
-fn backward_means_body(
-    setup: &Setup<'_>,
-    pool: Pool<'_>,
-    run: &Run,
-    lo: usize,
-    start: usize,
-    init: &[f64],
-) -> Vec<f64> {
-    let n = setup.n;
-    let mf = &run.mf;
-    let mut ms = mf[lo * n..(start + 1) * n].to_vec();
-    ms[(start - lo) * n..].copy_from_slice(init);
-    let (mut diff, mut corr, mut tmp) = (vec![0.0; n], vec![0.0; n], Vec::new());
-    for t in (lo..start).rev() {
-        let i = t - lo;
-        for c in 0..n {
-            diff[c] = ms[(i + 1) * n + c] - mf[t * n + c];
-        }
-        if t < run.dense.len() {
-            let v = &run.dense[t].m * nalgebra::DVector::from_column_slice(&diff);
-            corr.copy_from_slice(v.as_slice());
-        } else {
-            setup.gain(pool.get(run.sof[t]), &diff, &mut corr, &mut tmp);
-        }
-        for (o, cc) in ms[i * n..(i + 1) * n].iter_mut().zip(&corr) {
-            *o += cc;
-        }
-    }
-    ms
-}
+);
 
 /// Filter and RTS smoother means with low-rank states (module docs), or `None` when the model
 /// is outside the small-gain regime (the caller then runs the dense smoother).
