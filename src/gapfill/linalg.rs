@@ -97,7 +97,7 @@ dispatch!(
     /// zeros above the diagonal: row `i` is `(e_i − Σ_{j<i} L_ij W_j·) / L_ii`, eight columns
     /// at a time in registers. Each entry subtracts its terms in ascending `j` (the terms with
     /// `j` below its column are exact zeros), so the values are those of column-by-column
-    /// forward substitution bit for bit.
+    /// forward substitution with the reciprocals `1 / L_ii` bit for bit.
     fn lower_inverse_rows(ls: &[f64], wr: &mut [f64], n: usize) -> () {
         let mut stack = [0.0f64; 2 * 128];
         let mut heap = Vec::new();
