@@ -4,9 +4,6 @@
 
 mod common;
 
-use acm_rs::limits::StateMap;
-use acm_rs::normalization::Normalization;
-use acm_rs::skeleton::Skeleton;
 use acm_rs::tracking::{Emission, FrameParallelism, Params, SkeletonEmission, Tracker};
 use nalgebra::Vector3;
 
@@ -36,20 +33,7 @@ fn model() -> SkeletonEmission {
             markers.push(p + Vector3::new(0.3 * a.cos(), 0.3 * a.sin(), 0.1 * k as f64));
         }
     }
-    let sk = Skeleton::from_rest_pose(
-        &parents,
-        &rest,
-        marker_joints,
-        &markers,
-        &Vector3::y(),
-        None,
-    )
-    .unwrap();
-    let nb = sk.n_bones();
-    let norm = Normalization::default();
-    let (lo, hi): (Vec<f64>, Vec<f64>) = (0..3 * nb).map(|_| (-1.2, 1.2)).unzip();
-    let map = StateMap::new(nb, &lo, &hi, &norm, true).unwrap();
-    SkeletonEmission::new(sk, common::ring_rig(6), map, norm).unwrap()
+    common::chain_emission(&parents, &rest, marker_joints, &markers, |_| (-1.2, 1.2), 6)
 }
 
 #[test]

@@ -8,9 +8,6 @@
 
 mod common;
 
-use acm_rs::limits::StateMap;
-use acm_rs::normalization::Normalization;
-use acm_rs::skeleton::Skeleton;
 use acm_rs::tracking::online::OnlineTracker;
 use acm_rs::tracking::{Emission, Params, SkeletonEmission};
 use nalgebra::Vector3;
@@ -57,22 +54,9 @@ fn model() -> SkeletonEmission {
         .iter()
         .map(|p| p + Vector3::new(0.2, 0.3, 0.1))
         .collect();
-    let sk = Skeleton::from_rest_pose(
-        &parents,
-        &rest,
-        (0..9).collect(),
-        &markers,
-        &Vector3::y(),
-        None,
-    )
-    .unwrap();
-    let nb = sk.n_bones();
-    let norm = Normalization::default();
-    let (lo, hi): (Vec<f64>, Vec<f64>) = (0..3 * nb)
-        .map(|e| if e % 3 == 2 { (0.0, 0.0) } else { (-1.2, 1.2) })
-        .unzip();
-    let map = StateMap::new(nb, &lo, &hi, &norm, true).unwrap();
-    SkeletonEmission::new(sk, common::ring_rig(4), map, norm).unwrap()
+    // bounded joint angles, the twist of every bone fixed
+    let limit = |e: usize| if e % 3 == 2 { (0.0, 0.0) } else { (-1.2, 1.2) };
+    common::chain_emission(&parents, &rest, (0..9).collect(), &markers, limit, 4)
 }
 
 /// How a test runs the steps.
