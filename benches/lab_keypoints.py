@@ -12,12 +12,12 @@ are in ``tests/data/real`` with their provenance.
 from __future__ import annotations
 
 import platform
+import sys
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
-import scipy.io
 
 from acm_rs.calibration import read_label3d_calibration
 from acm_rs.elastic import add_stretch
@@ -27,22 +27,18 @@ from acm_rs.learning import learn_skeleton
 from acm_rs.sleap_session import read_sleap_session
 
 REAL = Path(__file__).resolve().parents[1] / "tests" / "data" / "real"
+sys.path.insert(0, str(REAL.parents[1]))
+
+from label3d_labels import read_labels  # noqa: E402
 
 
 def label3d():
     path = REAL / "dannce" / "label3d_voltest_dannce_m1.mat"
     rig = read_label3d_calibration(path)
-    m = scipy.io.loadmat(str(path))
     graph = read_keypoint_graph(REAL / "dannce" / "mouse22_skeleton.mat")
     names = list(graph.keypoints)
-    lab2 = []
-    for i in range(len(rig)):
-        cell = m["labelData"].ravel()[i]
-        d2 = cell["data_2d"][0, 0].astype(float)
-        lab2.append(d2.reshape(len(d2), -1, 2) - 1.0)  # MATLAB's 1-based pixels
-        d3 = cell["data_3d"][0, 0].astype(float)
-        lab3 = d3.reshape(len(d3), -1, 3)
-    return rig, graph, names, np.stack(lab2), lab3
+    lab2, lab3 = read_labels(path)
+    return rig, graph, names, lab2, lab3
 
 
 def learned(rig, graph, names, lab2):

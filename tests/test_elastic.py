@@ -21,7 +21,8 @@ from acm_rs.evaluate import evaluate
 from acm_rs.lab_skeleton import read_keypoint_graph, skeleton_from_labels
 from acm_rs.learning import learn_skeleton
 
-sio = pytest.importorskip("scipy.io")
+pytest.importorskip("scipy.io")
+from label3d_labels import read_labels  # noqa: E402
 DANNCE = Path(__file__).parent / "data" / "real" / "dannce"
 
 
@@ -31,17 +32,10 @@ def mouse():
     and the rigidly learned skeleton of the real Label3D file."""
     path = DANNCE / "label3d_voltest_dannce_m1.mat"
     rig = read_label3d_calibration(path)
-    m = sio.loadmat(str(path))
     graph = read_keypoint_graph(DANNCE / "mouse22_skeleton.mat")
     names = list(graph.keypoints)
-    lab2, lab3 = [], None
-    for i in range(len(rig)):
-        cell = m["labelData"].ravel()[i]
-        d2 = cell["data_2d"][0, 0].astype(float)
-        lab2.append(d2.reshape(len(d2), -1, 2) - 1.0)  # MATLAB's 1-based pixels
-        d3 = cell["data_3d"][0, 0].astype(float)
-        lab3 = d3.reshape(len(d3), -1, 3)
-    lab2 = np.stack(lab2)
+    lab2, lab3 = read_labels(path)
+    assert lab2.shape[0] == len(rig)
     start = skeleton_from_labels(graph, rig, lab2, bodyparts=names, joint_limits=False).skeleton
     lab = lab2[:, :, [names.index(k) for k in start.marker_names]]
     with warnings.catch_warnings():
