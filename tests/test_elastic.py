@@ -23,6 +23,7 @@ from acm_rs.learning import learn_skeleton
 
 pytest.importorskip("scipy.io")
 from label3d_labels import read_labels  # noqa: E402
+
 DANNCE = Path(__file__).parent / "data" / "real" / "dannce"
 
 
