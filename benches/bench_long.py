@@ -2,7 +2,7 @@
 input from a memory-mapped file, output to HDF5; frames/s, peak RSS, and (optionally) the
 difference to the smoother of the whole recording with the same parameters.
 
-    python benches/bench_long.py [--frames 40000] [--subset 20000] [--windows 10]
+    python benches/bench_long.py [--frames 40000] [--subset 10000] [--windows 10]
                                  [--chunk 2000] [--burn-in 100] [--method chunked]
                                  [--compare]
 
@@ -83,6 +83,26 @@ def report(name: str, res: dict, truth) -> None:
     )
 
 
+def _track(rig, sk, det, lik, truth, rss0: float, frames: int) -> int:
+    """``acm_rs.track`` with its defaults on the memory-mapped recording: end-to-end time,
+    peak RSS and the joints' error."""
+    t0 = time.perf_counter()
+    res = acm_rs.track(rig, sk, det, likelihood=lik)
+    total = time.perf_counter() - t0
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    info = res.info
+    print(
+        f"acm_rs.track: bounded memory {info.get('bounded_memory', False)}, motion "
+        f"{info.get('motion')}, EM {len(res.em_history)} iterations; total {total:.0f} s = "
+        f"{frames / total:.0f} frames/s end to end; peak RSS {rss:.0f} MB (before tracking "
+        f"{rss0:.0f} MB); EM {info.get('seconds_em', float('nan')):.0f} s, smoothing "
+        f"{info.get('seconds_smoothing', float('nan')):.0f} s"
+    )
+    report("track", {"joints": res.joints}, truth)
+    print(f"machine: {platform.machine()}, {platform.python_version()}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=40_000)
@@ -97,6 +117,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--compare", action="store_true",
                     help="also the other smoother with the same parameters")  # fmt: skip
     ap.add_argument("--keep", help="keep the inputs and outputs in this folder")
+    ap.add_argument(
+        "--track",
+        action="store_true",
+        help="call acm_rs.track with its defaults on the memmap instead (issue 29 "
+        "item 1: it chooses the bounded-memory path itself)",
+    )
     args = ap.parse_args(argv)
     warnings.simplefilter("default")
     sk = datasets.individual_skeleton(models.rat(), seed=1)
@@ -117,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
                            for f in ("det.npy", "lik.npy", "truth.npy"))  # fmt: skip
         print(f"generated {args.frames} frames in {time.perf_counter() - t0:.0f} s (memmap)")
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        if args.track:
+            return _track(rig, sk, det, lik, truth, rss0, args.frames)
         t0 = time.perf_counter()
         info = acm_rs.track_long(
             rig, sk, det, folder / "poses.h5", likelihood=lik, subset=args.subset,

@@ -364,7 +364,7 @@ def add_subcommands(sub) -> None:
         "--motion", choices=["auto", "velocity", "random_walk"], default="auto",
         help="motion model (as acm-rs track)",
     )  # fmt: skip
-    t.add_argument("--subset", type=int, default=20000, help="frames for EM (20000)")
+    t.add_argument("--subset", type=int, default=10000, help="frames for EM (10000)")
     t.add_argument("--windows", type=int, default=10, help="EM windows, evenly spread (10)")
     t.add_argument(
         "--method", choices=["streaming", "chunked"],

@@ -3,7 +3,7 @@
 Two steps, each with memory that does not grow with the recording's length ``T``:
 
 1. **Θ by EM on a subset** (:func:`learn_windows`): ``n_windows`` evenly spread windows of
-   the recording (default 10 × 2,000 frames), treated as independent sequences of one model:
+   the recording (default 10 × 1,000 frames), treated as independent sequences of one model:
    each window has its own ``μ0, V0`` (eqs. 77-78 per window), ``V_z`` and ``V_x`` are
    shared (eq. 79 summed over the windows' transitions, eq. 81 over their measurements).
    Windows that the tracker fits implausibly (90th percentile reprojection error above 1.5 ×
@@ -91,8 +91,12 @@ from .windows import (
 DEFAULT_CHUNK = 2000
 #: Frames of burn-in on each side of a core (measured: docs/tracking.md, "Long recordings").
 DEFAULT_BURN_IN = 100
-#: Frames of the EM subset and number of windows it is spread over.
-DEFAULT_SUBSET = 20000
+#: Frames of the EM subset and number of windows it is spread over. 10,000 rather than 20,000
+#: since session 17: on the 100,000-frame bench the joints were the same (velocity 0.463 /
+#: 0.330 mm against 0.463 / 0.331; random walk 0.672 / 0.503 against 0.676 / 0.504 mm) for
+#: EM in 0.5-0.65 × the time and 0.6 × the memory (benches/README.md, "track() on 100,000
+#: frames").
+DEFAULT_SUBSET = 10000
 DEFAULT_WINDOWS = 10
 #: Largest seam difference between neighbouring windows, in posterior SDs.
 DEFAULT_TOL = 0.05
@@ -136,20 +140,26 @@ def _combine(new: list[dict], frames: list[int], counts: list[np.ndarray], prev_
 
 def _em_windows(
     trackers: list, inits: list[tuple], max_iter: int, ll_tol: float, gate: float | None,
-    pool: ThreadPoolExecutor, printer: Callable,
+    pool: ThreadPoolExecutor, printer: Callable, final_e_step: bool = True,
 ) -> tuple[list[tuple], list[dict], bool]:  # fmt: skip
-    """Alg. 11 over independent windows (one ``NativeTracker`` each, E-steps in parallel);
-    stops when the summed marginal log-likelihood gains less than ``ll_tol`` nats per used
-    entry. Ends with an E-step under the returned per-window parameters."""
+    """Alg. 11 over independent windows (one ``NativeTracker`` each; each window's E- and
+    M-step in parallel with the others'); stops when the summed marginal log-likelihood gains
+    less than ``ll_tol`` nats per used entry. Ends with an E-step under the returned
+    per-window parameters (``final_e_step``; else the trackers hold the moments of the last
+    iteration's E-step, under the parameters before its M-step)."""
     params = list(inits)
     history: list[dict] = []
     converged = False
     frames = [tr.n_frames for tr in trackers]
+
+    def em_step(tr, p: tuple) -> tuple[dict, dict, np.ndarray]:
+        stats = tr.e_step(*p, gate)
+        return stats, tr.m_step(*p), (tr.mask() == _USED).sum(axis=0).ravel()
+
     for it in range(1, max_iter + 1):
         t0 = time.perf_counter()
-        stats = list(pool.map(lambda tr, p: tr.e_step(*p, gate), trackers, params))
-        new = [tr.m_step(*p) for tr, p in zip(trackers, params, strict=True)]
-        counts = [(tr.mask() == _USED).sum(axis=0).ravel() for tr in trackers]
+        done = list(pool.map(em_step, trackers, params))
+        stats, new, counts = ([d[k] for d in done] for k in range(3))
         vz, vx = _combine(new, frames, counts, params[0][3])
         nxt = [(p["mu0"], p["V0"], vz, vx) for p in new]
         # Alg. 13's measure over the shared parameters (diag V_z, V_x)
@@ -167,7 +177,8 @@ def _em_windows(
             if gain < ll_tol * max(tot["used"], 1):
                 converged = True
                 break
-    list(pool.map(lambda tr, p: tr.e_step(*p, gate), trackers, params))
+    if final_e_step:
+        list(pool.map(lambda tr, p: tr.e_step(*p, gate), trackers, params))
     return params, history, converged
 
 
@@ -304,7 +315,10 @@ def learn_windows(
             del tr
             rw = final = []
             left = max(1, max_iter - len(history))
-            vparams, more, vconv = _em_windows(vel, vinit, left, ll_tol, gate_thr, pool, printer)
+            # (the velocity trackers' moments serve only the spread of the smoothed velocities
+            # in the window prior: those of EM's last E-step do, without a final one)
+            vparams, more, vconv = _em_windows(vel, vinit, left, ll_tol, gate_thr, pool, printer,
+                                               final_e_step=False)  # fmt: skip
             for h in more:
                 h["motion"] = "velocity"
             worse = _velocity_worse(history[-1], more[-1]) if history and more else ""
