@@ -86,3 +86,47 @@ def test_the_marker_misfit_is_not_estimated_on_the_bounded_path(case):
             motion="random_walk", max_iter=3,
         )  # fmt: skip
     assert res.info["bounded_memory"] and res.info["misfit"] == "off"
+
+
+def test_detections_converted_in_blocks_equal_the_whole(case):
+    # the bounded path converts a memory-mapped recording a block at a time into its result
+    from acm_rs.tracking.track import _measurements
+
+    rig, sk, det, lik, _ = case
+    lik = lik.copy()
+    lik[0, 5:9] = 0.2  # below pcutoff
+    whole = _measurements(rig, sk, det, lik, 0.9, None)
+    blocks = _measurements(rig, sk, det, lik, 0.9, None, block=37)
+    np.testing.assert_array_equal(blocks, whole)
+    assert np.isnan(whole[0, 5:9]).all()
+
+
+def test_em_windows_free_their_covariances_between_iterations(case):
+    # the velocity EM of the windows frees each window's covariances after its M-step; the
+    # next E-step gives them back (the same moments as a tracker that kept them), and what
+    # needs them meanwhile says so
+    from acm_rs.state import StateMap
+    from acm_rs.tracking.long import _Model, _normalized
+    from acm_rs.tracking.track import _first_pose, default_normalization
+
+    rig, sk, det, lik, _ = case
+    norm = default_normalization(rig, sk)
+    model = _Model(rig, sk, norm, True, 10, None, 1, {}, np.zeros((0, 0)), 0.9)
+    x = _normalized(norm, model.detections(np.asarray(det[:, :60]), lik[:, :60]))
+    kept, freed = model.tracker(x, order=2), model.tracker(x, order=2)
+    ns = kept.n_params_state
+    mu0 = np.zeros(ns)
+    _, t0, r0 = _first_pose(rig, sk, model.detections(det[:, :60], lik[:, :60]), norm)
+    mu0[: kept.n_state] = StateMap(sk, norm, True).start_state(t0, r0)
+    p = (mu0, np.eye(ns) * 2e-4, np.eye(ns) * 2e-4, np.full(x[0].size, 1e-4))
+    for tr in (kept, freed):
+        tr.e_step(*p)
+    q = freed.m_step(*p)
+    freed.release_covariances()
+    for call in (freed.covs, freed.posterior, lambda: freed.m_step(*p)):
+        with pytest.raises(ValueError, match="released"):
+            call()
+    q = (q["mu0"], q["V0"], q["Vz"], q["Vx_diag"])
+    assert kept.e_step(*q) == freed.e_step(*q)
+    np.testing.assert_array_equal(kept.covs(), freed.covs())
+    np.testing.assert_array_equal(kept.means(), freed.means())

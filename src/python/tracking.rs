@@ -456,6 +456,7 @@ impl PyTracker {
 
     /// `(T+1, n, n)` posterior covariances of the last E-step.
     fn covs<'py>(&self, py: Python<'py>) -> PyResult<Out<'py>> {
+        self.inner.require_covariances().map_err(to_py)?;
         let n = self.n_state();
         let a = alloc(py, &[self.inner.n_frames() + 1, n, n]);
         {
@@ -465,6 +466,13 @@ impl PyTracker {
             py.detach(|| dst.copy_from_slice(src));
         }
         Ok(a)
+    }
+
+    /// Frees the covariances of the last E-step, keeping the means and the entry statuses
+    /// (`Tracker::release_covariances`): the next `e_step` allocates them again; `covs`,
+    /// `posterior`, `state_row` and `m_step` raise until then.
+    fn release_covariances(&mut self) {
+        self.inner.release_covariances();
     }
 
     /// `(T, n_cams, M, 2)` status of each measurement entry in the last E-step
@@ -486,6 +494,7 @@ impl PyTracker {
         &self,
         py: Python<'py>,
     ) -> PyResult<(Out<'py>, Out<'py>, Out<'py>, Out<'py>, Out<'py>)> {
+        self.inner.require_covariances().map_err(to_py)?;
         let em = self.inner.emission();
         let n = em.map.n_state();
         let (means, covs) = (&self.inner.means()[n..], &self.inner.covs()[n * n..]);

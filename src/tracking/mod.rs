@@ -396,6 +396,36 @@ impl<E: Emission> Tracker<E> {
         Ok(())
     }
 
+    /// Frees the covariances of the last pass (the whole state's and, for order 2, the
+    /// position marginals'), keeping the means and the entry statuses. EM over many windows
+    /// (`tracking/long.py`) then holds a window's `8 (T+1) ns²` bytes only while it works on
+    /// it: after its M-step, until its next E-step, which allocates them again. Until then
+    /// [`Self::covs`] and [`Self::state_moments`] give empty covariances, and the methods
+    /// that need them ([`Self::m_step`], [`Self::state_row`], [`Self::smooth_filtered`],
+    /// [`Self::filtered_packed`]) return an error.
+    pub fn release_covariances(&mut self) {
+        self.covs = Vec::new();
+        self.zcovs = Vec::new();
+        self.has_statistics = false;
+        self.filtered_only = false;
+    }
+
+    /// Whether the covariances of the last pass are held (not freed by
+    /// [`Self::release_covariances`]).
+    ///
+    /// # Errors
+    /// Invalid, naming the fix, if they were released.
+    pub fn require_covariances(&self) -> Result<()> {
+        if self.covs.is_empty() {
+            return Err(AcmError::Invalid(
+                "this tracker's covariances were released (release_covariances); run an E-step \
+                 first"
+                    .into(),
+            ));
+        }
+        Ok(())
+    }
+
     /// Position means `(T+1) × n` and covariances `(T+1) × n × n` (row 0 = `z_0`) near the
     /// posterior, e.g. the random walk's smoothed posterior, used to linearise the update of
     /// frames whose prior is too broad for the unscented transform (after a stretch without
@@ -477,6 +507,11 @@ impl<E: Emission> Tracker<E> {
             if g.is_nan() || g <= 0.0 {
                 return Err(AcmError::Invalid(format!("the gate must be > 0, got {g}")));
             }
+        }
+        let size = (self.n_frames + 1) * n * n;
+        if self.covs.len() != size {
+            // after release_covariances
+            self.covs = vec![0.0; size];
         }
         self.means[..n].copy_from_slice(&params.mu0);
         self.covs[..n * n].copy_from_slice(&params.v0);
@@ -670,6 +705,7 @@ impl<E: Emission> Tracker<E> {
     /// # Errors
     /// Invalid for `k > T`.
     pub fn state_row(&self, k: usize) -> Result<(&[f64], &[f64])> {
+        self.require_covariances()?;
         if k > self.n_frames {
             return Err(AcmError::Invalid(format!(
                 "row {k} is beyond the last frame {}",
@@ -715,6 +751,7 @@ impl<E: Emission> Tracker<E> {
     /// # Errors
     /// Numerical errors for a smoothed covariance that is not positive semi-definite.
     pub fn m_step(&self, prev: &Params) -> Result<Params> {
+        self.require_covariances()?;
         if !self.has_statistics {
             return Err(AcmError::Invalid(
                 "the M-step needs an E-step with statistics (not smooth())".into(),

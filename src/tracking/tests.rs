@@ -593,6 +593,42 @@ fn smoothing_without_statistics_gives_the_same_moments_and_refuses_an_m_step() {
     assert!(err.contains("statistics"), "{err}");
 }
 
+/// EM over many windows frees each window's covariances between its M-step and its next
+/// E-step: the means and statuses stay, what needs the covariances says so, and the next
+/// E-step gives the same moments and M-step as a tracker that never released them.
+#[test]
+fn released_covariances_come_back_with_the_next_e_step() {
+    for order in [1, 2] {
+        let (em, x, p, _, n_x, _) = linear_problem(7);
+        let p = of_order(p, order, n_x);
+        let mut kept = Tracker::new(em.clone(), x.clone()).unwrap();
+        let mut freed = Tracker::new(em, x).unwrap();
+        for tr in [&mut kept, &mut freed] {
+            tr.set_order(order).unwrap();
+            tr.e_step(&p, None).unwrap();
+        }
+        let means = freed.means().to_vec();
+        let q = freed.m_step(&p).unwrap();
+        freed.release_covariances();
+        assert!(freed.covs().is_empty() && freed.state_moments().1.is_empty());
+        assert_eq!(freed.means(), &means[..]);
+        for err in [
+            freed.m_step(&p).unwrap_err(),
+            freed.state_row(0).unwrap_err(),
+            freed.require_covariances().unwrap_err(),
+        ] {
+            assert!(err.to_string().contains("released"), "{err}");
+        }
+        assert!(freed.filtered_packed().is_err());
+        let a = kept.e_step(&q, None).unwrap();
+        let b = freed.e_step(&q, None).unwrap();
+        assert_eq!(a, b);
+        assert_eq!(kept.state_moments(), freed.state_moments());
+        assert_eq!(kept.covs(), freed.covs());
+        assert_eq!(kept.m_step(&q).unwrap(), freed.m_step(&q).unwrap());
+    }
+}
+
 /// The parameters of [`linear_problem`] for the motion model of `order` (2: velocity 0 with
 /// the position's mean, the same `V_x`).
 fn of_order(p: Params, order: usize, n_x: usize) -> Params {

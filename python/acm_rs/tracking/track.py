@@ -112,9 +112,22 @@ def _measurements(
     likelihood: np.ndarray | None,
     pcutoff: float,
     marker_names: Sequence[str] | None,
+    block: int | None = None,
 ) -> np.ndarray:
-    masked = mask_by_likelihood(detections, likelihood, pcutoff)
-    det = labels_in_skeleton_order(masked, skeleton, rig, marker_names).copy()
+    """Detections ``(C, T, M, 2)`` in pixels, skeleton marker order, NaN where missing or
+    below ``pcutoff``; ``block``: converted that many frames at a time into the result (a
+    long memory-mapped recording then needs no whole-recording temporaries)."""
+    T = np.shape(detections)[1]
+    if block is not None and T > block:
+        det = np.empty((len(rig), T, skeleton.n_markers, 2))
+        for a in range(0, T, block):
+            b = min(T, a + block)
+            lik = None if likelihood is None else likelihood[:, a:b]
+            masked = mask_by_likelihood(detections[:, a:b], lik, pcutoff)
+            det[:, a:b] = labels_in_skeleton_order(masked, skeleton, rig, marker_names)
+    else:
+        masked = mask_by_likelihood(detections, likelihood, pcutoff)
+        det = labels_in_skeleton_order(masked, skeleton, rig, marker_names).copy()
     det[~np.isfinite(det).all(axis=-1)] = np.nan
     if not np.isfinite(det).any():
         raise ValueError(
