@@ -410,7 +410,7 @@ impl<E: Emission> Tracker<E> {
         self.filtered_only = false;
     }
 
-    /// Whether the covariances of the last pass are held (not freed by
+    /// Checks that the covariances of the last pass are held (not freed by
     /// [`Self::release_covariances`]).
     ///
     /// # Errors
@@ -679,6 +679,10 @@ impl<E: Emission> Tracker<E> {
             )));
         }
         self.means.copy_from_slice(means);
+        if self.covs.len() != steps * ns * ns {
+            // after release_covariances
+            self.covs = vec![0.0; steps * ns * ns];
+        }
         for (cov, src) in self
             .covs
             .chunks_exact_mut(ns * ns)

@@ -626,6 +626,13 @@ fn released_covariances_come_back_with_the_next_e_step() {
         assert_eq!(kept.state_moments(), freed.state_moments());
         assert_eq!(kept.covs(), freed.covs());
         assert_eq!(kept.m_step(&q).unwrap(), freed.m_step(&q).unwrap());
+        // a filter pass restored from a spill after a release
+        kept.filter(&q, None).unwrap();
+        let (m, packed) = kept.filtered_packed().unwrap();
+        let (m, mask) = (m.to_vec(), kept.mask().to_vec());
+        freed.release_covariances();
+        freed.load_filtered(&m, &packed, &mask).unwrap();
+        assert_eq!(kept.state_moments(), freed.state_moments());
     }
 }
 
