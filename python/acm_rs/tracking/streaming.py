@@ -264,7 +264,11 @@ def forward_pass(
     typical = typical_px if typical_px is not None and math.isfinite(typical_px) else None
     restarts: list[int] = []
     last_restart = -1
-    with ThreadPoolExecutor(max_workers=1) as saver:
+    # the next segment is filtered from this one's end while this one is checked, spilled and
+    # scored (the second core's work; discarded if this one is cut by a restart)
+    pending: tuple[_Segment, Future] | None = None
+    with ThreadPoolExecutor(max_workers=1) as saver, \
+            ThreadPoolExecutor(max_workers=1) as filterer:  # fmt: skip
         saved: Future | None = None
 
         def keep(seg: _Segment, native, det, stats, px=None) -> None:
@@ -295,8 +299,16 @@ def forward_pass(
                     a = b
                     continue
                 prior = (mu, model.prior_cov)
-            seg = _Segment(a, b, prior[0], prior[1])
-            native, det, stats = _filtered(sequential, source, seg)
+            if pending is not None and pending[0].a == a and not fresh:
+                seg = pending[0]
+                native, det, stats = pending[1].result()
+            else:
+                seg = _Segment(a, b, prior[0], prior[1])
+                native, det, stats = _filtered(sequential, source, seg)
+            pending = None
+            if b < T:
+                nxt = _Segment(b, min(b + segment, T), *native.state_row(-1))
+                pending = (nxt, filterer.submit(_filtered, sequential, source, nxt))
             cut, px = None, None
             if fresh:
                 tail_px, tail_g = np.zeros(0), np.zeros(0)
@@ -334,6 +346,9 @@ def forward_pass(
                 a = b
             else:
                 del native
+                if pending is not None:  # filtered from a state that is not kept
+                    pending[1].result()
+                    pending = None
                 if cut > a:  # the frames before the loss end this sequence
                     part = _Segment(a, cut, seg.mu, seg.cov)
                     keep(part, *_filtered(sequential, source, part))

@@ -16,7 +16,6 @@ import json
 import mmap
 import os
 import tempfile
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -172,10 +171,25 @@ def frame_px(
     out = np.full(len(z), np.nan)
     enough = ok.sum(axis=1) >= 3
     if enough.any():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            out[enough] = np.nanpercentile(np.where(ok, err, np.nan)[enough], q, axis=1)
+        out[enough] = nanpercentile_rows(np.where(ok, err, np.nan)[enough], q)
     return out
+
+
+def nanpercentile_rows(a: np.ndarray, q: float) -> np.ndarray:
+    """``np.nanpercentile(a, q, axis=1)`` (its default linear method, the same numbers) of a
+    2-D array whose rows each hold a finite value, without NumPy's loop over rows (which
+    took 54 µs a frame in the streaming smoother's forward pass, 8 % of it)."""
+    s = np.sort(a, axis=1)  # NaN last
+    k = np.isfinite(a).sum(axis=1)
+    virtual = (k - 1) * (q / 100.0)
+    prev = np.floor(virtual)
+    gamma = virtual - prev
+    rows = np.arange(len(a))
+    lo = np.clip(prev.astype(np.intp), 0, k - 1)
+    x0, x1 = s[rows, lo], s[rows, np.minimum(lo + 1, k - 1)]
+    d = x1 - x0
+    # NumPy's _lerp: from the nearer end
+    return np.where(gamma >= 0.5, x1 - d * (1 - gamma), x0 + d * gamma)
 
 
 class _Source:
