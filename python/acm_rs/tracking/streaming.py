@@ -346,8 +346,8 @@ def forward_pass(
                 a = b
             else:
                 del native
-                if pending is not None:  # filtered from a state that is not kept
-                    pending[1].result()
+                if pending is not None:  # filtered from a state that is not kept: its
+                    pending[1].exception()  # result, or error, is dropped once it is done
                     pending = None
                 if cut > a:  # the frames before the loss end this sequence
                     part = _Segment(a, cut, seg.mu, seg.cov)
