@@ -18,7 +18,7 @@ import numpy as np
 
 from .. import _native
 from ..camera import CameraRig
-from ..labels import labels_in_skeleton_order, mask_by_likelihood
+from ..labels import _warn_dropped, labels_in_skeleton_order, mask_by_likelihood
 from ..learning import _pose_bounds, _to_state, check_scale, check_units, initial_poses
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
@@ -105,6 +105,24 @@ def gate_threshold(p: float | None) -> float | None:
     return -2.0 * math.log1p(-p)
 
 
+def _skeleton_order(
+    rig: CameraRig,
+    skeleton: Skeleton,
+    detections: np.ndarray,
+    likelihood: np.ndarray | None,
+    pcutoff: float,
+    marker_names: Sequence[str] | None,
+    warn: bool = True,
+) -> np.ndarray:
+    """Detections ``(C, F, M, 2)`` in pixels as a new float64 array in skeleton marker order,
+    NaN where missing, partial or below ``pcutoff``."""
+    # (mask_by_likelihood returns a copy: the reordering may then work in place)
+    masked = mask_by_likelihood(detections, likelihood, pcutoff, warn=warn)
+    det = labels_in_skeleton_order(masked, skeleton, rig, marker_names)
+    det[~np.isfinite(det).all(axis=-1)] = np.nan
+    return det
+
+
 def _measurements(
     rig: CameraRig,
     skeleton: Skeleton,
@@ -114,21 +132,26 @@ def _measurements(
     marker_names: Sequence[str] | None,
     block: int | None = None,
 ) -> np.ndarray:
-    """Detections ``(C, T, M, 2)`` in pixels, skeleton marker order, NaN where missing or
-    below ``pcutoff``; ``block``: converted that many frames at a time into the result (a
-    long memory-mapped recording then needs no whole-recording temporaries)."""
+    """:func:`_skeleton_order` of a whole recording, with an error if nothing is usable;
+    ``block``: converted that many frames at a time into the result (a long memory-mapped
+    recording then needs no whole-recording float64 temporaries; the warning about points a
+    cutoff drops still judges the whole recording)."""
     T = np.shape(detections)[1]
-    if block is not None and T > block:
+    if block is None or T <= block:
+        det = _skeleton_order(rig, skeleton, detections, likelihood, pcutoff, marker_names)
+    else:
         det = np.empty((len(rig), T, skeleton.n_markers, 2))
+        present, drop = [], []
         for a in range(0, T, block):
             b = min(T, a + block)
+            raw = detections[:, a:b]
             lik = None if likelihood is None else likelihood[:, a:b]
-            masked = mask_by_likelihood(detections[:, a:b], lik, pcutoff)
-            det[:, a:b] = labels_in_skeleton_order(masked, skeleton, rig, marker_names)
-    else:
-        masked = mask_by_likelihood(detections, likelihood, pcutoff)
-        det = labels_in_skeleton_order(masked, skeleton, rig, marker_names).copy()
-    det[~np.isfinite(det).all(axis=-1)] = np.nan
+            det[:, a:b] = _skeleton_order(rig, skeleton, raw, lik, pcutoff, marker_names, False)
+            if lik is not None:
+                present.append(np.isfinite(np.asarray(raw)).all(axis=-1))
+                drop.append(~(np.asarray(lik) >= pcutoff))
+        if present:
+            _warn_dropped(np.concatenate(present, axis=1), np.concatenate(drop, axis=1), pcutoff)
     if not np.isfinite(det).any():
         raise ValueError(
             "no detection is usable: every entry is NaN"

@@ -25,10 +25,9 @@ import numpy as np
 from .. import _native
 from .._io import new_file_mode
 from ..camera import CameraRig
-from ..labels import labels_in_skeleton_order, mask_by_likelihood
 from ..skeleton import Skeleton
 from ..state import Normalization, StateMap
-from .track import _first_pose
+from .track import _first_pose, _skeleton_order
 
 #: Windows with this many consecutive frames without detections get the random walk's
 #: linearisation hint under the velocity model.
@@ -69,10 +68,8 @@ class _Model:
 
     def detections(self, det: np.ndarray, lik: np.ndarray | None) -> np.ndarray:
         """Raw window ``(C, W, K, 2)`` → skeleton order, below-cutoff and partial points NaN."""
-        masked = mask_by_likelihood(det, lik, self.pcutoff, warn=False)
-        out = labels_in_skeleton_order(masked, self.skeleton, self.rig, self.marker_names).copy()
-        out[~np.isfinite(out).all(axis=-1)] = np.nan
-        return out
+        return _skeleton_order(self.rig, self.skeleton, det, lik, self.pcutoff,
+                               self.marker_names, warn=False)  # fmt: skip
 
 
 def _normalized(norm: Normalization, det: np.ndarray) -> np.ndarray:
