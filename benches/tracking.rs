@@ -142,10 +142,48 @@ fn case(c: &mut Criterion, name: &str, em: &SkeletonEmission) {
             )
         })
     });
+    // the sigma points of a lower-triangular factor (a UKF step's): each point moves only the
+    // markers of its state entries onward (Emission::eval_sigma), one thread and two
+    let centre: Vec<f64> = sigma[..n].to_vec();
+    let lower: Vec<f64> = pseudo_random(n * n, 9)
+        .iter()
+        .enumerate()
+        .map(|(e, v)| if e % n < e / n { 0.0 } else { 0.02 * v })
+        .collect();
+    let mut points = vec![0.0; 2 * n * n];
+    let s = (n as f64).sqrt();
+    for i in 0..n {
+        for r in 0..n {
+            points[i * n + r] = centre[r] + s * lower[i * n + r];
+            points[(n + i) * n + r] = centre[r] - s * lower[i * n + r];
+        }
+    }
+    let mut gx = vec![0.0; 2 * n * n_x];
+    for serial in [true, false] {
+        let threads = if serial { "one_thread" } else { "two_threads" };
+        group.bench_function(format!("emission_{}_full_{threads}", 2 * n), |b| {
+            b.iter(|| {
+                if serial {
+                    em.eval_batch_serial(black_box(&points), &mut gx).unwrap()
+                } else {
+                    em.eval_batch(black_box(&points), &mut gx).unwrap()
+                }
+            })
+        });
+        group.bench_function(format!("emission_{}_sigma_{threads}", 2 * n), |b| {
+            b.iter(|| {
+                em.eval_sigma(&centre, black_box(&points), serial, &mut gx)
+                    .unwrap()
+            })
+        });
+    }
     let ytil = pseudo_random(2 * n * n_x, 8);
     let mut gram = vec![0.0; 4 * n * n];
     group.bench_function(format!("gram_{}x{n_x}", 2 * n), |b| {
         b.iter(|| dense::add_gram_rows(black_box(&ytil), 2 * n, n_x, &mut gram, true))
+    });
+    group.bench_function(format!("gram_{}x{n_x}_one_thread", 2 * n), |b| {
+        b.iter(|| dense::add_gram_rows(black_box(&ytil), 2 * n, n_x, &mut gram, false))
     });
     for (i, g) in gram.iter_mut().enumerate() {
         if i % (2 * n + 1) == 0 {

@@ -132,7 +132,7 @@ impl CalibrationProblem {
                 "need at least one camera and one board view, got {n_cams} and {n_frames}"
             )));
         }
-        if board.is_empty() || board.len() % 3 != 0 {
+        if board.is_empty() || !board.len().is_multiple_of(3) {
             return Err(AcmError::Shape(format!(
                 "board points: {} values is not a positive multiple of 3",
                 board.len()

@@ -123,7 +123,7 @@ impl Camera {
                  {N_PARAMS_NO_SKEW} (without)"
             )));
         }
-        if params.is_empty() || params.len() % width != 0 {
+        if params.is_empty() || !params.len().is_multiple_of(width) {
             return Err(AcmError::Shape(format!(
                 "camera parameters: {} values is not a positive multiple of {width}",
                 params.len()
@@ -273,7 +273,7 @@ pub struct Projected {
 /// Checks a flat `(n, 3)` point array: NaN marks a missing point (projected to NaN), while
 /// infinity is an error.
 fn points_from_flat(points: &[f64]) -> Result<usize> {
-    if points.len() % 3 != 0 {
+    if !points.len().is_multiple_of(3) {
         return Err(AcmError::Shape(format!(
             "points: {} values is not a multiple of 3",
             points.len()

@@ -6,7 +6,7 @@ use crate::camera::{camera_blocks, Camera};
 use crate::error::{ensure_len, AcmError, Result};
 use crate::limits::StateMap;
 use crate::normalization::Normalization;
-use crate::skeleton::Skeleton;
+use crate::skeleton::{FkDirty, FkWorkspace, Skeleton};
 use nalgebra::Vector3;
 use rayon::prelude::*;
 
@@ -167,11 +167,16 @@ const STACK_CAMERAS: usize = 16;
 /// points of a UKF step allocates nothing once each thread has seen one.
 #[derive(Default)]
 struct Scratch {
-    ws: Option<crate::skeleton::FkWorkspace>,
+    ws: Option<FkWorkspace>,
     pose: Vec<f64>,
     markers: Vec<f64>,
     /// Bone lengths of a state with elastic bones ([`StateMap::with_stretch`]).
     lengths: Vec<f64>,
+    /// [`emission_sigma_into`]: the centre's pixels, and the moving markers of one sigma
+    /// point with their pixels.
+    centre_pixels: Vec<f64>,
+    sub_markers: Vec<f64>,
+    sub_pixels: Vec<f64>,
 }
 
 thread_local! {
@@ -221,7 +226,7 @@ pub fn project_poses_into(
     r: &[f64],
     out: &mut [f64],
 ) -> Result<()> {
-    if t.len() % 3 != 0 {
+    if !t.len().is_multiple_of(3) {
         return Err(AcmError::Shape(format!(
             "translations: {} values is not a multiple of 3",
             t.len()
@@ -341,10 +346,30 @@ pub fn emission_batch_into(
     out: &mut [f64],
     parallel: bool,
 ) -> Result<()> {
+    let Some(block) = check_batch(skeleton, cameras, map, norm, states, out)? else {
+        return Ok(());
+    };
+    let ns = map.n_state();
+    with_projectors(cameras, norm, |projs| {
+        batch_with(skeleton, map, projs, states, out, block, ns, parallel)
+    });
+    Ok(())
+}
+
+/// The checks of [`emission_batch_into`]; `None` if there is nothing to compute, else the
+/// length of one output row.
+fn check_batch(
+    skeleton: &Skeleton,
+    cameras: &[Camera],
+    map: &StateMap,
+    norm: &Normalization,
+    states: &[f64],
+    out: &[f64],
+) -> Result<Option<usize>> {
     norm.validate()?;
     ensure_len(map.n_pose(), skeleton.n_pose(), "state map pose length")?;
     let ns = map.n_state();
-    if ns == 0 || states.len() % ns != 0 {
+    if ns == 0 || !states.len().is_multiple_of(ns) {
         return Err(AcmError::Shape(format!(
             "states: {} values is not a multiple of the state length {ns}",
             states.len()
@@ -362,24 +387,59 @@ pub fn emission_batch_into(
         (states.len() / ns) * block,
         "emission output buffer",
     )?;
-    if block == 0 {
-        return Ok(());
-    }
-    // the cameras' projectors on the stack (a UKF step allocates nothing; see `Scratch`)
-    let mut on_stack = [NormalizedProjector::ZERO; STACK_CAMERAS];
-    let on_heap: Vec<NormalizedProjector>;
-    let projs: &[NormalizedProjector] = if cameras.len() <= STACK_CAMERAS {
+    Ok((block > 0).then_some(block))
+}
+
+/// Calls `f` with the cameras' projectors, on the stack for rigs of up to
+/// [`STACK_CAMERAS`] cameras (a UKF step allocates nothing; see `Scratch`).
+fn with_projectors<R>(
+    cameras: &[Camera],
+    norm: &Normalization,
+    f: impl FnOnce(&[NormalizedProjector]) -> R,
+) -> R {
+    if cameras.len() <= STACK_CAMERAS {
+        let mut on_stack = [NormalizedProjector::ZERO; STACK_CAMERAS];
         for (p, c) in on_stack.iter_mut().zip(cameras) {
             *p = NormalizedProjector::new(c, norm);
         }
-        &on_stack[..cameras.len()]
+        f(&on_stack[..cameras.len()])
     } else {
-        on_heap = cameras
+        let on_heap: Vec<NormalizedProjector> = cameras
             .iter()
             .map(|c| NormalizedProjector::new(c, norm))
             .collect();
-        &on_heap
-    };
+        f(&on_heap)
+    }
+}
+
+/// Bone lengths of state `z` (`scratch` when the map stretches bones, else the skeleton's).
+fn state_lengths<'a>(
+    skeleton: &'a Skeleton,
+    map: &StateMap,
+    z: &[f64],
+    scratch: &'a mut Vec<f64>,
+) -> &'a [f64] {
+    if map.stretch_bones().is_empty() {
+        skeleton.lengths()
+    } else {
+        scratch.resize(skeleton.n_bones(), 0.0);
+        map.lengths_into(z, skeleton.lengths(), scratch);
+        scratch.as_slice()
+    }
+}
+
+/// The body of [`emission_batch_into`] once checked, with the projectors.
+#[allow(clippy::too_many_arguments)]
+fn batch_with(
+    skeleton: &Skeleton,
+    map: &StateMap,
+    projs: &[NormalizedProjector],
+    states: &[f64],
+    out: &mut [f64],
+    block: usize,
+    ns: usize,
+    parallel: bool,
+) {
     let one = |o: &mut [f64], z: &[f64]| {
         SCRATCH.with(|cell| {
             let mut guard = cell.borrow_mut();
@@ -388,6 +448,7 @@ pub fn emission_batch_into(
                 pose,
                 markers,
                 lengths,
+                ..
             } = &mut *guard;
             if !ws.as_ref().is_some_and(|w| w.fits(skeleton)) {
                 *ws = Some(skeleton.workspace());
@@ -396,13 +457,7 @@ pub fn emission_batch_into(
             pose.resize(skeleton.n_pose(), 0.0);
             markers.resize(3 * skeleton.n_markers(), 0.0);
             map.to_pose_into(z, pose, None);
-            let l = if map.stretch_bones().is_empty() {
-                skeleton.lengths()
-            } else {
-                lengths.resize(skeleton.n_bones(), 0.0);
-                map.lengths_into(z, skeleton.lengths(), lengths);
-                lengths.as_slice()
-            };
+            let l = state_lengths(skeleton, map, z, lengths);
             skeleton.forward_flat_into(
                 &pose[..3],
                 &pose[3..],
@@ -427,6 +482,192 @@ pub fn emission_batch_into(
             one(o, z);
         }
     }
+}
+
+/// For each sigma point of a UKF step whose factor is lower-triangular (Alg. 5: the points
+/// `m ± √n L_i`, `L = chol(P)`, differ from the centre `m` only in the state entries
+/// `i..n`), the parts of the forward kinematics that move ([`Skeleton::fk_dirty`]): the
+/// points of the later entries (bones far from the root, in the state's order) leave most
+/// markers where the centre has them.
+#[derive(Debug, Clone)]
+pub struct SigmaPlan {
+    dirty: Vec<FkDirty>,
+    n_markers: usize,
+}
+
+impl SigmaPlan {
+    /// The plan of `skeleton` under `map` (entry `i`: what the state entries `i..n` move).
+    pub fn new(skeleton: &Skeleton, map: &StateMap) -> Self {
+        let (n, nf, nb) = (map.n_state(), map.n_pose_state(), skeleton.n_bones());
+        let (free, stretch) = (map.free_indices(), map.stretch_bones());
+        let dirty = (0..n)
+            .map(|i| {
+                let (mut tr, mut rot, mut len) = (false, vec![false; nb], vec![false; nb]);
+                for e in i..n {
+                    if e >= nf {
+                        len[stretch[e - nf]] = true;
+                    } else if free[e] < 3 {
+                        tr = true;
+                    } else {
+                        rot[(free[e] - 3) / 3] = true;
+                    }
+                }
+                skeleton.fk_dirty(tr, &rot, &len)
+            })
+            .collect();
+        Self {
+            dirty,
+            n_markers: skeleton.n_markers(),
+        }
+    }
+
+    /// Mean fraction of the markers that a sigma point moves (1: no saving).
+    pub fn moving_fraction(&self) -> f64 {
+        let moved: usize = self.dirty.iter().map(|d| d.markers().len()).sum();
+        moved as f64 / (self.dirty.len() * self.n_markers).max(1) as f64
+    }
+}
+
+/// The output rows of [`emission_sigma_into`], shared by its tasks, each of which writes
+/// rows no other task writes.
+#[derive(Clone, Copy)]
+struct RowsPtr(*mut f64);
+// SAFETY: the tasks write disjoint rows (see `row`) and the buffer outlives them.
+unsafe impl Send for RowsPtr {}
+unsafe impl Sync for RowsPtr {}
+
+impl RowsPtr {
+    /// Row `row` (`len` values).
+    ///
+    /// # Safety
+    /// The row must lie inside the buffer and no other live reference may touch it.
+    #[allow(clippy::mut_from_ref)]
+    unsafe fn row(&self, row: usize, len: usize) -> &mut [f64] {
+        std::slice::from_raw_parts_mut(self.0.add(row * len), len)
+    }
+}
+
+/// [`emission_batch_into`] of the `2n` sigma points `m ± √n L_i` of a lower-triangular `L`
+/// (rows `i` and `n + i` of `sigma`, `2n × n`): the centre `m` (`mean`) is evaluated once
+/// (per task of 16 points when `parallel`), then each point recomputes only the pose entries,
+/// forward kinematics and pixels that its entries `i..n` move ([`SigmaPlan`]) and copies
+/// the other pixels from the centre. A point that differs from the centre in an entry before `i`
+/// (a factor that is not lower-triangular) is evaluated in full. The same values as
+/// `emission_batch_into(sigma)` bit for bit.
+///
+/// # Errors
+/// As [`emission_batch_into`], plus shape errors for `mean` and for a `sigma` of other than
+/// `2n` rows, and a non-finite error for the centre.
+#[allow(clippy::too_many_arguments)]
+pub fn emission_sigma_into(
+    skeleton: &Skeleton,
+    cameras: &[Camera],
+    map: &StateMap,
+    norm: &Normalization,
+    plan: &SigmaPlan,
+    mean: &[f64],
+    sigma: &[f64],
+    out: &mut [f64],
+    parallel: bool,
+) -> Result<()> {
+    let Some(block) = check_batch(skeleton, cameras, map, norm, sigma, out)? else {
+        return Ok(());
+    };
+    let ns = map.n_state();
+    ensure_len(mean.len(), ns, "sigma point centre")?;
+    ensure_len(sigma.len(), 2 * ns * ns, "sigma points (2n × n)")?;
+    ensure_len(plan.dirty.len(), ns, "sigma plan")?;
+    if mean.iter().any(|v| !v.is_finite()) {
+        return Err(AcmError::NonFinite(
+            "sigma point centre contains NaN or infinity".into(),
+        ));
+    }
+    let n_m = skeleton.n_markers();
+    with_projectors(cameras, norm, |projs| {
+        // One task: the points of the entries i ≡ c (mod tasks) (rows i and n + i), i
+        // descending. Points i and n + i differ from the centre only in what
+        // `plan.dirty[i]` names, which grows as i falls, so the forward kinematics and pose
+        // left by the point before hold the centre's values wherever this one does not
+        // recompute them. (Interleaved entries: the early ones, which move most markers,
+        // are shared out evenly.)
+        let rows = RowsPtr(out.as_mut_ptr());
+        let task = |c: usize, tasks: usize| {
+            SCRATCH.with(|cell| {
+                let mut guard = cell.borrow_mut();
+                let sc = &mut *guard;
+                if !sc.ws.as_ref().is_some_and(|w| w.fits(skeleton)) {
+                    sc.ws = Some(skeleton.workspace());
+                }
+                let ws = sc.ws.as_mut().expect("set above");
+                sc.pose.resize(skeleton.n_pose(), 0.0);
+                sc.markers.resize(3 * n_m, 0.0);
+                sc.centre_pixels.resize(block, 0.0);
+                let offsets = skeleton.offsets();
+                let mut centre_held = false;
+                for i in (0..ns).rev().filter(|i| i % tasks == c) {
+                    let d = &plan.dirty[i];
+                    for row in [i, ns + i] {
+                        let z = &sigma[row * ns..(row + 1) * ns];
+                        // SAFETY: row `row` of `out` (`block` values, in bounds: `out` has
+                        // 2n rows, checked above) is written by this task alone (each entry
+                        // i belongs to one task), and `out` outlives the tasks.
+                        let o = unsafe { rows.row(row, block) };
+                        if z[..i] != mean[..i] || d.markers().len() == n_m {
+                            // in full: every marker moves, or the point is not of a
+                            // lower-triangular factor (then the centre is needed again)
+                            map.to_pose_into(z, &mut sc.pose, None);
+                            let l = state_lengths(skeleton, map, z, &mut sc.lengths);
+                            let (t, r) = sc.pose.split_at(3);
+                            skeleton.forward_flat_into(t, r, l, offsets, ws, None, &mut sc.markers);
+                            project_all(projs, &sc.markers, o);
+                            centre_held = false;
+                            continue;
+                        }
+                        if !centre_held {
+                            map.to_pose_into(mean, &mut sc.pose, None);
+                            let l = state_lengths(skeleton, map, mean, &mut sc.lengths);
+                            let (t, r) = sc.pose.split_at(3);
+                            skeleton.forward_flat_into(t, r, l, offsets, ws, None, &mut sc.markers);
+                            project_all(projs, &sc.markers, &mut sc.centre_pixels);
+                            centre_held = true;
+                        }
+                        map.to_pose_tail_into(z, &mut sc.pose, i);
+                        let l = state_lengths(skeleton, map, z, &mut sc.lengths);
+                        let (t, r) = sc.pose.split_at(3);
+                        skeleton.forward_dirty_into(t, r, l, offsets, ws, d, &mut sc.markers);
+                        o.copy_from_slice(&sc.centre_pixels);
+                        let moving = d.markers();
+                        if moving.is_empty() {
+                            continue;
+                        }
+                        sc.sub_markers.clear();
+                        for &m in moving {
+                            sc.sub_markers
+                                .extend_from_slice(&sc.markers[3 * m..3 * m + 3]);
+                        }
+                        let per_cam = 2 * moving.len();
+                        sc.sub_pixels.resize(projs.len() * per_cam, 0.0);
+                        project_all(projs, &sc.sub_markers, &mut sc.sub_pixels);
+                        for (oc, pc) in o
+                            .chunks_exact_mut(2 * n_m)
+                            .zip(sc.sub_pixels.chunks_exact(per_cam))
+                        {
+                            for (q, &m) in moving.iter().enumerate() {
+                                oc[2 * m..2 * m + 2].copy_from_slice(&pc[2 * q..2 * q + 2]);
+                            }
+                        }
+                    }
+                }
+            })
+        };
+        if parallel {
+            // two tasks per thread (each evaluates the centre once)
+            let tasks = (2 * rayon::current_num_threads()).clamp(1, ns);
+            (0..tasks).into_par_iter().for_each(|c| task(c, tasks));
+        } else {
+            task(0, 1);
+        }
+    });
     Ok(())
 }
 
@@ -461,6 +702,109 @@ mod tests {
         ])
         .unwrap();
         vec![c0, c1]
+    }
+
+    /// The `2n` sigma points `m ± √n L_i` of a factor `l` (column-major `n × n`).
+    fn sigma_of(m: &[f64], l: &[f64]) -> Vec<f64> {
+        let n = m.len();
+        let s = (n as f64).sqrt();
+        let mut out = vec![0.0; 2 * n * n];
+        for i in 0..n {
+            for r in 0..n {
+                out[i * n + r] = m[r] + s * l[i * n + r];
+                out[(n + i) * n + r] = m[r] - s * l[i * n + r];
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn sigma_points_share_the_centres_markers_bit_for_bit() {
+        let cams = rig();
+        let norm = Normalization::default();
+        for (case, links) in [("tree", false), ("link matrix", true), ("stretch", false)] {
+            let mut sk = branching();
+            let n_b = sk.n_bones();
+            if links {
+                // every bone also turned by bone 0 and bone 2 turning bone 4
+                let mut lm = sk.bone_links();
+                lm[..n_b].iter_mut().for_each(|v| *v = true);
+                lm[2 * n_b + 4] = true;
+                sk = sk.with_links(&lm, None).unwrap();
+            }
+            let inf = f64::INFINITY;
+            let (mut lower, mut upper) = (vec![-inf; 3 * n_b], vec![inf; 3 * n_b]);
+            lower[5] = 0.0; // a fixed entry
+            upper[5] = 0.0;
+            lower[6] = -0.4; // a bounded one
+            upper[6] = 0.9;
+            let mut map = StateMap::new(n_b, &lower, &upper, &norm, true).unwrap();
+            if case == "stretch" {
+                map = map.with_stretch(&[3, 1]).unwrap();
+            }
+            let plan = SigmaPlan::new(&sk, &map);
+            assert!(
+                plan.moving_fraction() < 0.8,
+                "{case}: {}",
+                plan.moving_fraction()
+            );
+            let n = map.n_state();
+            let m: Vec<f64> = (0..n)
+                .map(|i| ((i * 29 % 13) as f64 / 13.0 - 0.5) * 0.4)
+                .collect();
+            // lower-triangular factor (the UKF's), then a full one (not the contract: the
+            // points must fall back to full evaluation)
+            for lower_only in [true, false] {
+                let l: Vec<f64> = (0..n * n)
+                    .map(|e| {
+                        let (r, c) = (e % n, e / n);
+                        if lower_only && r < c {
+                            0.0
+                        } else {
+                            ((e * 17 % 11) as f64 / 11.0 - 0.5) * 0.05
+                                + if r == c { 0.1 } else { 0.0 }
+                        }
+                    })
+                    .collect();
+                let sigma = sigma_of(&m, &l);
+                let block = cams.len() * sk.n_markers() * 2;
+                let mut want = vec![0.0; 2 * n * block];
+                emission_batch_into(&sk, &cams, &map, &norm, &sigma, &mut want, false).unwrap();
+                for parallel in [false, true] {
+                    let mut got = vec![0.0; 2 * n * block];
+                    emission_sigma_into(
+                        &sk, &cams, &map, &norm, &plan, &m, &sigma, &mut got, parallel,
+                    )
+                    .unwrap();
+                    let same = got
+                        .iter()
+                        .zip(&want)
+                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same, "{case}, lower {lower_only}, parallel {parallel}");
+                }
+            }
+            // wrong shapes and a NaN centre are errors
+            let sigma = sigma_of(&m, &vec![0.0; n * n]);
+            let mut out = vec![0.0; 2 * n * cams.len() * sk.n_markers() * 2];
+            let bad = emission_sigma_into(
+                &sk,
+                &cams,
+                &map,
+                &norm,
+                &plan,
+                &m[1..],
+                &sigma,
+                &mut out,
+                false,
+            );
+            assert!(matches!(bad, Err(AcmError::Shape(_))));
+            let mut nan = m.clone();
+            nan[0] = f64::NAN;
+            let bad = emission_sigma_into(
+                &sk, &cams, &map, &norm, &plan, &nan, &sigma, &mut out, false,
+            );
+            assert!(matches!(bad, Err(AcmError::NonFinite(_))));
+        }
     }
 
     #[test]

@@ -102,7 +102,7 @@ impl LearningProblem {
             )));
         }
         let per_frame = cameras.len() * skeleton.n_markers() * 2;
-        if per_frame == 0 || labels.len() % per_frame != 0 {
+        if per_frame == 0 || !labels.len().is_multiple_of(per_frame) {
             return Err(AcmError::Shape(format!(
                 "labels: {} values do not form (frames, {} cameras, {} markers, 2)",
                 labels.len(),

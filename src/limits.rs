@@ -247,6 +247,17 @@ impl StateMap {
         }
     }
 
+    /// [`Self::to_pose_into`] of the state entries `from..` only: the pose entries of the
+    /// earlier ones keep their values (e.g. those of a state that agrees there).
+    pub fn to_pose_tail_into(&self, z: &[f64], pose: &mut [f64], from: usize) {
+        for (i, (&idx, m)) in self.free.iter().zip(&self.maps).enumerate().skip(from) {
+            pose[idx] = match *m {
+                EntryMap::Linear { scale } => scale * z[i],
+                EntryMap::Bounded { lo, hi } => erf_map(z[i], lo, hi).0,
+            };
+        }
+    }
+
     /// State → full pose.
     ///
     /// # Errors

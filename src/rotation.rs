@@ -183,7 +183,7 @@ pub fn rodrigues_log(rot: &Matrix3<f64>) -> Result<Vector3<f64>> {
 /// # Errors
 /// Shape error if `r.len()` is not a multiple of 3; non-finite error for NaN/inf.
 pub fn rodrigues_batch(r: &[f64]) -> Result<Vec<f64>> {
-    if r.len() % 3 != 0 {
+    if !r.len().is_multiple_of(3) {
         return Err(AcmError::Shape(format!(
             "Rodrigues vectors: {} values is not a multiple of 3",
             r.len()
@@ -202,7 +202,7 @@ pub fn rodrigues_batch(r: &[f64]) -> Result<Vec<f64>> {
 /// # Errors
 /// As [`rodrigues_log`], naming the index of the first offending matrix.
 pub fn rodrigues_log_batch(mats: &[f64]) -> Result<Vec<f64>> {
-    if mats.len() % 9 != 0 {
+    if !mats.len().is_multiple_of(9) {
         return Err(AcmError::Shape(format!(
             "rotation matrices: {} values is not a multiple of 9",
             mats.len()
@@ -228,7 +228,7 @@ pub fn rodrigues_log_batch(mats: &[f64]) -> Result<Vec<f64>> {
 /// # Errors
 /// Shape error if `r.len()` is not a multiple of 3; non-finite error for NaN/inf.
 pub fn rodrigues_jacobian_batch(r: &[f64]) -> Result<Vec<f64>> {
-    if r.len() % 3 != 0 {
+    if !r.len().is_multiple_of(3) {
         return Err(AcmError::Shape(format!(
             "Rodrigues vectors: {} values is not a multiple of 3",
             r.len()

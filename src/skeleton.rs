@@ -81,12 +81,45 @@ pub struct FkWorkspace {
 }
 
 impl FkWorkspace {
+    /// Copies `other`'s values (same sizes) without allocating.
+    pub fn copy_from(&mut self, other: &FkWorkspace) {
+        self.q.copy_from_slice(&other.q);
+        self.g.copy_from_slice(&other.g);
+        self.bone_rot.copy_from_slice(&other.bone_rot);
+        self.joints.copy_from_slice(&other.joints);
+    }
     /// Whether this workspace has the sizes of `skeleton`'s ([`Skeleton::workspace`]).
     pub fn fits(&self, skeleton: &Skeleton) -> bool {
         self.q.len() == skeleton.n_bones()
             && self.g.len() == skeleton.n_bones()
             && self.joints.len() == skeleton.n_joints()
             && self.bone_rot.len() == skeleton.n_bones()
+    }
+}
+
+/// The parts of the forward kinematics that change when some pose entries (the root
+/// translation, some bones' rotation vectors) and some bone lengths change, the rest keeping
+/// their values from another pose ([`Skeleton::fk_dirty`], [`Skeleton::forward_dirty_into`]).
+/// Each list is in the order [`Skeleton::forward_flat_into`] computes it.
+#[derive(Debug, Clone, Default)]
+pub struct FkDirty {
+    translation: bool,
+    /// Bones whose rotation `Q_b` changes.
+    q: Vec<usize>,
+    /// Steps of the plan whose product `G_b` changes.
+    plan: Vec<usize>,
+    /// Joints whose position changes, in FK order.
+    joints: Vec<usize>,
+    /// Bones with markers whose orientation `R_b` changes.
+    bone_rot: Vec<usize>,
+    /// Markers that move.
+    markers: Vec<usize>,
+}
+
+impl FkDirty {
+    /// The markers that move, ascending.
+    pub fn markers(&self) -> &[usize] {
+        &self.markers
     }
 }
 
@@ -605,6 +638,111 @@ impl Skeleton {
         }
     }
 
+    /// Which parts of the forward kinematics change with the root translation (if
+    /// `translation`), the rotations of the bones `rot[b]` and the lengths of the bones
+    /// `len[b]` (both `n_bones`), everything else fixed: the closure of Alg. 1's dependencies
+    /// through this skeleton's plan of `G_b` products, joint chain and markers.
+    pub fn fk_dirty(&self, translation: bool, rot: &[bool], len: &[bool]) -> FkDirty {
+        let n_b = self.n_bones();
+        let mut g = vec![false; n_b];
+        let mut plan = Vec::new();
+        for (p, &(b, base, from)) in self.plan.iter().enumerate() {
+            g[b] = base.is_some_and(|c| g[c]) || self.acting[b][from..].iter().any(|&i| rot[i]);
+            if g[b] {
+                plan.push(p);
+            }
+        }
+        let mut jd = vec![false; self.n_joints()];
+        jd[self.root] = translation;
+        let mut joints = Vec::new();
+        for &a in &self.order[1..] {
+            let b = self.bone_of_end[a].expect("non-root joint has a bone");
+            jd[a] = jd[self.bones[b].0] || g[b] || len[b];
+            if jd[a] {
+                joints.push(a);
+            }
+        }
+        let bone_rot = (0..n_b)
+            .filter(|&b| self.bone_has_marker[b] && g[b])
+            .collect();
+        let markers = (0..self.n_markers())
+            .filter(|&k| jd[self.marker_joints[k]] || g[self.marker_bone[k]])
+            .collect();
+        FkDirty {
+            translation,
+            q: (0..n_b).filter(|&b| rot[b]).collect(),
+            plan,
+            joints,
+            bone_rot,
+            markers,
+        }
+    }
+
+    /// [`Self::fk_core`] (with `full == false`) of the parts in `d` only; `ws` holds the
+    /// others from a pose that differs from this one only where `d` says. Each recomputed
+    /// value is the same expression of the same inputs as in `fk_core`, so the result equals
+    /// `fk_core`'s bit for bit.
+    fn fk_core_dirty(
+        &self,
+        t: &Vector3<f64>,
+        r: &[f64],
+        lengths: &[f64],
+        ws: &mut FkWorkspace,
+        d: &FkDirty,
+    ) {
+        for &b in &d.q {
+            let rv = Vector3::new(r[3 * b], r[3 * b + 1], r[3 * b + 2]);
+            ws.q[b] = if rv == Vector3::zeros() {
+                Matrix3::identity()
+            } else {
+                rodrigues(&rv)
+            };
+        }
+        for &p in &d.plan {
+            let (b, base, from) = self.plan[p];
+            let mut g = base.map_or_else(Matrix3::identity, |c| ws.g[c]);
+            for &i in &self.acting[b][from..] {
+                g *= ws.q[i];
+            }
+            ws.g[b] = g;
+        }
+        if d.translation {
+            ws.joints[self.root] = *t;
+        }
+        for &a in &d.joints {
+            let b = self.bone_of_end[a].expect("non-root joint has a bone");
+            let start = self.bones[b].0;
+            let gb = &ws.g[b];
+            ws.joints[a] = ws.joints[start] + gb * self.rest_frames[b].column(2) * lengths[b];
+        }
+        for &b in &d.bone_rot {
+            ws.bone_rot[b] = ws.g[b] * self.rest_frames[b];
+        }
+    }
+
+    /// [`Self::forward_flat_into`] of a pose that differs from the one whose forward
+    /// kinematics `ws` and `markers_out` hold only in the parts named by `d`
+    /// ([`Self::fk_dirty`]): recomputes those parts and the markers that move (the others
+    /// are left as they are). The same values as a full evaluation, bit for bit.
+    #[allow(clippy::too_many_arguments)] // hot path: flat slices, no per-call packing
+    pub fn forward_dirty_into(
+        &self,
+        t: &[f64],
+        r: &[f64],
+        lengths: &[f64],
+        offsets: &[Vector3<f64>],
+        ws: &mut FkWorkspace,
+        d: &FkDirty,
+        markers_out: &mut [f64],
+    ) {
+        self.fk_core_dirty(&Vector3::new(t[0], t[1], t[2]), r, lengths, ws, d);
+        for &k in &d.markers {
+            let (j, b) = (self.marker_joints[k], self.marker_bone[k]);
+            let m = ws.joints[j] + ws.bone_rot[b] * offsets[k];
+            markers_out[3 * k..3 * k + 3].copy_from_slice(m.as_slice());
+        }
+    }
+
     /// Allocation-free forward kinematics of one pose without validation (hot path of batch
     /// code that validated its inputs once).
     ///
@@ -870,7 +1008,7 @@ impl Skeleton {
         joints_out: &mut [f64],
         markers_out: &mut [f64],
     ) -> Result<()> {
-        if t.len() % 3 != 0 {
+        if !t.len().is_multiple_of(3) {
             return Err(AcmError::Shape(format!(
                 "translations: {} values is not a multiple of 3",
                 t.len()

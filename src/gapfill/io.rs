@@ -473,7 +473,7 @@ Frame#\tTime\tA\t\t\tB\t\t\n\
                 s ^= s << 13;
                 s ^= s >> 7;
                 s ^= s << 17;
-                if s % 17 == 0 {
+                if s.is_multiple_of(17) {
                     (s >> 8) as u8
                 } else {
                     alphabet[(s >> 8) as usize % alphabet.len()]

@@ -65,7 +65,11 @@ pub(crate) struct Workspace {
     sigma: Vec<f64>,
     x: Vec<f64>,
     xbar: Vec<f64>,
+    /// `X − x̄` (`2n × n_x`, row = sigma point): the deviations the gate and `Ỹ` share.
+    dev: Vec<f64>,
     used: Vec<usize>,
+    /// `ws.used` as runs of consecutive entries `(first entry, first index in used, length)`.
+    runs: Vec<(usize, usize, usize)>,
     ytil: Vec<f64>,
     /// `M = I + ỸỸᵀ`, factorised in place.
     gram: Vec<f64>,
@@ -78,8 +82,11 @@ pub(crate) struct Workspace {
     nu: Vec<f64>,
     xhat: Vec<f64>,
     gx: Vec<f64>,
-    /// The gate's blocks of `S`, rejected blocks, one block and its whitened innovation.
-    gate_acc: Vec<f64>,
+    /// `Σ_r dev[r, j] dev[r, j − o]` for the gate's block offsets `o` (`block × n_x`).
+    bands: Vec<f64>,
+    /// The linear prediction `D s[n..]` of [`linearisation_error`] (`n_p`).
+    lin: Vec<f64>,
+    /// The gate's rejected blocks, one block of `S` and its whitened innovation.
     rejected: Vec<usize>,
     sb: Vec<f64>,
     sbw: Vec<f64>,
@@ -98,7 +105,9 @@ impl Workspace {
             sigma: vec![0.0; 2 * n * n],
             x: vec![0.0; 2 * n * n_x],
             xbar: vec![0.0; n_x],
+            dev: vec![0.0; 2 * n * n_x],
             used: Vec::with_capacity(n_x),
+            runs: Vec::with_capacity(n_x),
             ytil: Vec::with_capacity(2 * n * n_x),
             gram: vec![0.0; 4 * n * n],
             mbar: Vec::new(),
@@ -109,7 +118,8 @@ impl Workspace {
             nu: Vec::with_capacity(n_x),
             xhat: Vec::with_capacity(n_x),
             gx: vec![0.0; n_x],
-            gate_acc: Vec::new(),
+            bands: Vec::new(),
+            lin: Vec::with_capacity(n_x),
             rejected: Vec::with_capacity(n_x),
             sb: Vec::new(),
             sbw: Vec::new(),
@@ -152,6 +162,78 @@ fn sigma_points_from(m: &[f64], l: &[f64], ld: usize, out: &mut [f64]) {
         }
     }
 }
+
+crate::kernels::dispatch!(
+    /// `dev[r, j] = x[r, j] − x̄[j]` for the row-major rows of `x` (`x̄.len()` entries each).
+    fn deviations(x: &[f64], xbar: &[f64], dev: &mut [f64]) -> () {
+        let n_x = xbar.len();
+        for (d, row) in dev.chunks_exact_mut(n_x).zip(x.chunks_exact(n_x)) {
+            for ((d, v), m) in d.iter_mut().zip(row).zip(xbar) {
+                *d = v - m;
+            }
+        }
+    }
+);
+
+/// `used` (ascending entries) as runs of consecutive entries `(first entry, its index in
+/// used, length)`, so that the loops over them are contiguous.
+fn used_runs(used: &[usize], runs: &mut Vec<(usize, usize, usize)>) {
+    runs.clear();
+    for (q, &j) in used.iter().enumerate() {
+        match runs.last_mut() {
+            Some((j0, _, len)) if *j0 + *len == j => *len += 1,
+            _ => runs.push((j, q, 1)),
+        }
+    }
+}
+
+crate::kernels::dispatch!(
+    /// Rows `i` and `n + i` of `Ỹ` (`2n × n_p`, `n_p = scale.len()`) from the deviations of the
+    /// sigma points `z̄ ± √n L_i` (`a`, `b`: rows `i`, `n + i` of `dev` at the used entries):
+    /// `E_i = (a + b) s √(1/4n)`, `D_i = (a − b) s √(1/4n)` (`sq = √(1/4n)`, `s` = `scale`).
+    fn whitened_pairs(
+        dev: &[f64],
+        n: usize,
+        n_x: usize,
+        runs: &[(usize, usize, usize)],
+        scale: &[f64],
+        sq: f64,
+        ytil: &mut [f64],
+    ) -> () {
+        let np = scale.len();
+        for i in 0..n {
+            let (dst_e, rest) = ytil[i * np..].split_at_mut(n * np);
+            let (dst_e, dst_d) = (&mut dst_e[..np], &mut rest[..np]);
+            let dp = &dev[i * n_x..(i + 1) * n_x];
+            let dm = &dev[(n + i) * n_x..(n + i + 1) * n_x];
+            for &(j0, q0, len) in runs {
+                let pairs = dp[j0..j0 + len].iter().zip(&dm[j0..j0 + len]);
+                let outs = dst_e[q0..q0 + len].iter_mut().zip(&mut dst_d[q0..q0 + len]);
+                for ((e, d), ((a, b), s)) in outs.zip(pairs.zip(&scale[q0..q0 + len])) {
+                    *d = (a - b) * s * sq;
+                    *e = (a + b) * s * sq;
+                }
+            }
+        }
+    }
+);
+
+crate::kernels::dispatch!(
+    /// `bands[o, j] = Σ_r dev[r, j] dev[r, j − o]` (`j ≥ o`, summed over the rows `r` in order)
+    /// for the offsets `o < k`: the entries `(a, a − o)` of every block of `k` entries of
+    /// `Σ_r dev_r dev_rᵀ`, each a contiguous axpy over the row.
+    fn band_products(dev: &[f64], n_x: usize, k: usize, bands: &mut [f64]) -> () {
+        bands.fill(0.0);
+        for row in dev.chunks_exact(n_x) {
+            for (o, band) in bands.chunks_exact_mut(n_x).take(k).enumerate() {
+                let terms = row[o..].iter().zip(&row[..n_x - o]);
+                for (b, (x, y)) in band[o..].iter_mut().zip(terms) {
+                    *b += x * y;
+                }
+            }
+        }
+    }
+);
 
 /// One step of Alg. 6: from the filtered `(μ̃_{t-1}, Ṽ_{t-1})` and the measurement `x_t`
 /// (NaN = missing) to `(μ̃_t, Ṽ_t)`, writing each entry's [`status`] into `mask`.
@@ -214,7 +296,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
     })?;
     // Alg. 6 lines 5-7: sigma points of (z̄, P) through g, and their mean x̄.
     sigma_points_from(&ws.mbar[..n], &ws.lfull, ns, &mut ws.sigma);
-    eval(em, ws.serial, &ws.sigma, &mut ws.x)?;
+    em.eval_sigma(&ws.mbar[..n], &ws.sigma, ws.serial, &mut ws.x)?;
     let m2 = 2 * n;
     let inv = 1.0 / m2 as f64;
     ws.used.clear();
@@ -237,6 +319,9 @@ pub(crate) fn step<E: Emission + ?Sized>(
             stats.invisible += 1;
         }
     }
+    // X − x̄, shared by the gate and Ỹ
+    ws.dev.resize(m2 * n_x, 0.0);
+    deviations(&ws.x, &ws.xbar, &mut ws.dev);
     // Student-t model: entry j has noise V_x,j / w_j (w = 1: the Gaussian model)
     ws.vx_eff.clear();
     ws.vx_eff
@@ -285,18 +370,8 @@ pub(crate) fn step<E: Emission + ?Sized>(
     // `ỸỸᵀ` and the update are unchanged, and `W = [L, −L]/√2` becomes `[0, L]` (see
     // [`linear_update`] for why E comes first).
     let sq = (0.5 * inv).sqrt();
-    for i in 0..n {
-        let (dst_e, rest) = ws.ytil[i * np..].split_at_mut(n * np);
-        let dst_e = &mut dst_e[..np];
-        let dst_d = &mut rest[..np];
-        let xp = &ws.x[i * n_x..(i + 1) * n_x];
-        let xm = &ws.x[(n + i) * n_x..(n + i + 1) * n_x];
-        for (q, &j) in ws.used.iter().enumerate() {
-            let (a, b) = (xp[j] - ws.xbar[j], xm[j] - ws.xbar[j]);
-            dst_d[q] = (a - b) * ws.scale[q] * sq;
-            dst_e[q] = (a + b) * ws.scale[q] * sq;
-        }
-    }
+    used_runs(&ws.used, &mut ws.runs);
+    whitened_pairs(&ws.dev, n, n_x, &ws.runs, &ws.scale, sq, &mut ws.ytil);
     linear_update(
         &ws.mbar,
         &ws.lfull,
@@ -315,8 +390,16 @@ pub(crate) fn step<E: Emission + ?Sized>(
         ws.xhat.clear();
         ws.xhat.extend(ws.used.iter().map(|&j| ws.xbar[j]));
         let lin = (ws.ytil.as_slice(), ws.used.as_slice());
-        let err =
-            linearisation_error(em, &ws.up, &ws.xhat, &ws.vx_eff, &mut ws.gx, lin, ws.serial)?;
+        let err = linearisation_error(
+            em,
+            &ws.up,
+            &ws.xhat,
+            &ws.vx_eff,
+            &mut ws.gx,
+            lin,
+            &mut ws.lin,
+            ws.serial,
+        )?;
         // (the usual case: the first update holds; the rest allocates and is rare)
         if err.is_nan() || err > RELIN_THRESHOLD {
             if let Some((hm, hv)) = hint {
@@ -790,7 +873,8 @@ fn relinearized<E: Emission + ?Sized>(
     for _ in 0..max_iter {
         let cur = best.as_ref().unwrap_or(first);
         let lin = (ws.ytil.as_slice(), ws.used.as_slice());
-        let mean_err = linearisation_error(em, cur, &xhat, vx_eff, &mut gx, lin, ws.serial)?;
+        let mean_err =
+            linearisation_error(em, cur, &xhat, vx_eff, &mut gx, lin, &mut ws.lin, ws.serial)?;
         if mean_err.is_nan() || mean_err <= RELIN_THRESHOLD {
             break; // NaN: a marker is no longer predictable; keep what we have
         }
@@ -810,6 +894,7 @@ fn relinearized<E: Emission + ?Sized>(
 
 /// Mean squared whitened error of the linearisation in `ws.ytil` / `xhat` at the posterior
 /// mean of `up`: `g(μ)` against `x̂ + D s[n..]`, over the entries of `ws.used`.
+#[allow(clippy::too_many_arguments)]
 fn linearisation_error<E: Emission + ?Sized>(
     em: &E,
     up: &Update,
@@ -817,15 +902,24 @@ fn linearisation_error<E: Emission + ?Sized>(
     vx_eff: &[f64],
     gx: &mut [f64],
     (ytil, used): (&[f64], &[usize]),
+    lin: &mut Vec<f64>,
     serial: bool,
 ) -> Result<f64> {
     let n = em.n_state();
     let np = used.len();
     eval(em, serial, &up.mu[..n], gx)?;
+    // D s[n..], row by row of Dᵀ (contiguous)
+    lin.clear();
+    lin.resize(np, 0.0);
+    for i in 0..n {
+        let si = up.s[n + i];
+        for (l, y) in lin.iter_mut().zip(&ytil[(n + i) * np..(n + i + 1) * np]) {
+            *l += y * si;
+        }
+    }
     let mut err = 0.0;
-    for (q, &j) in used.iter().enumerate() {
-        let lin: f64 = (0..n).map(|i| ytil[(n + i) * np + q] * up.s[n + i]).sum();
-        let e = (gx[j] - xhat[q]) / vx_eff[j].sqrt() - lin;
+    for ((&j, &x), l) in used.iter().zip(xhat).zip(lin.iter()) {
+        let e = (gx[j] - x) / vx_eff[j].sqrt() - l;
         err += e * e;
     }
     Ok(err / np.max(1) as f64)
@@ -858,7 +952,7 @@ fn linearize_about<E: Emission + ?Sized>(
         return Ok(None);
     };
     sigma_points(mu_j.as_slice(), &lj, &mut ws.sigma);
-    eval(em, ws.serial, &ws.sigma, &mut ws.x)?;
+    em.eval_sigma(mu_j.as_slice(), &ws.sigma, ws.serial, &mut ws.x)?;
     let inv = 1.0 / m2 as f64;
     ws.xbar.fill(0.0);
     for row in ws.x.chunks_exact(n_x) {
@@ -932,28 +1026,13 @@ fn apply_gate(
     stats: &mut FilterStats,
 ) {
     let n_x = x_t.len();
-    let m2 = ws.x.len() / n_x;
+    let m2 = ws.dev.len() / n_x;
     let inv = 1.0 / m2 as f64;
     let k = block;
     let n_blocks = n_x / k;
-    // Blocks of S (lower triangles, k(k+1)/2 entries each), accumulated row by row.
-    let tri = k * (k + 1) / 2;
-    let sb_all = &mut ws.gate_acc;
-    sb_all.clear();
-    sb_all.resize(n_blocks * tri, 0.0);
-    for row in ws.x.chunks_exact(n_x) {
-        for (b, acc) in sb_all.chunks_exact_mut(tri).enumerate() {
-            let b0 = b * k;
-            let mut e = 0;
-            for a in 0..k {
-                let da = row[b0 + a] - ws.xbar[b0 + a];
-                for c in 0..=a {
-                    acc[e] += da * (row[b0 + c] - ws.xbar[b0 + c]);
-                    e += 1;
-                }
-            }
-        }
-    }
+    // The blocks of S's sample part, as bands of offsets 0..k (row by row, in row order).
+    ws.bands.resize(k * n_x, 0.0);
+    band_products(&ws.dev, n_x, k, &mut ws.bands);
     let vx = &ws.vx_eff;
     let rejected = &mut ws.rejected;
     rejected.clear();
@@ -963,18 +1042,17 @@ fn apply_gate(
     sb.resize(k * k, 0.0);
     w.clear();
     w.resize(k, 0.0);
-    for (b, acc) in ws.gate_acc.chunks_exact(tri).enumerate() {
+    for b in 0..n_blocks {
         let b0 = b * k;
         if (b0..b0 + k).any(|j| mask[j] != status::USED) {
             continue;
         }
         blocks += 1;
-        let mut e = 0;
         for a in 0..k {
             for c in 0..=a {
-                sb[c * k + a] = inv * acc[e];
-                sb[a * k + c] = inv * acc[e];
-                e += 1;
+                let acc = ws.bands[(a - c) * n_x + b0 + a];
+                sb[c * k + a] = inv * acc;
+                sb[a * k + c] = inv * acc;
             }
             sb[a * k + a] += vx[b0 + a];
         }

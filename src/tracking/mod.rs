@@ -303,7 +303,7 @@ impl<E: Emission> Tracker<E> {
                 "the model has an empty state or measurement".into(),
             ));
         }
-        if x.is_empty() || x.len() % n_x != 0 {
+        if x.is_empty() || !x.len().is_multiple_of(n_x) {
             return Err(AcmError::Shape(format!(
                 "measurements: {} values is not a positive multiple of n_x = {n_x}",
                 x.len()

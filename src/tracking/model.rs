@@ -2,7 +2,7 @@
 //! of Alg. 10 (eq. 50), and a linear map (for the golden test against the Kalman filter).
 
 use crate::camera::Camera;
-use crate::emission::emission_batch_into;
+use crate::emission::{emission_batch_into, emission_sigma_into, SigmaPlan};
 use crate::error::{ensure_len, AcmError, Result};
 use crate::limits::StateMap;
 use crate::normalization::Normalization;
@@ -28,6 +28,22 @@ pub trait Emission: Send + Sync {
     /// As [`Self::eval_batch`].
     fn eval_batch_serial(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
         self.eval_batch(states, out)
+    }
+    /// `g` of the `2n` sigma points `m ± √n L_i` (rows `i` and `n + i` of `sigma`, `2n × n`)
+    /// of a lower-triangular factor `L`, whose rows `i`, `n + i` equal the centre `mean` in
+    /// the entries before `i`; on the calling thread alone if `serial`. The same values as
+    /// [`Self::eval_batch`] of `sigma`, which is the default; an emission may use the shared
+    /// entries to skip work.
+    ///
+    /// # Errors
+    /// As [`Self::eval_batch`].
+    fn eval_sigma(&self, mean: &[f64], sigma: &[f64], serial: bool, out: &mut [f64]) -> Result<()> {
+        let _ = mean;
+        if serial {
+            self.eval_batch_serial(sigma, out)
+        } else {
+            self.eval_batch(sigma, out)
+        }
     }
     /// Entries are grouped in consecutive blocks of this size for the innovation gate
     /// (2 for image points `(u, v)`).
@@ -55,6 +71,8 @@ pub struct SkeletonEmission {
     pub norm: Normalization,
     /// The map's log-stretch entries (memoryless in the transition).
     stretch_entries: Vec<usize>,
+    /// What each sigma point of a step moves ([`Emission::eval_sigma`]).
+    sigma_plan: SigmaPlan,
 }
 
 impl SkeletonEmission {
@@ -80,12 +98,14 @@ impl SkeletonEmission {
         }
         let nf = map.n_pose_state();
         let stretch_entries = (nf..nf + map.stretch_bones().len()).collect();
+        let sigma_plan = SigmaPlan::new(&skeleton, &map);
         Ok(Self {
             skeleton,
             cameras,
             map,
             norm,
             stretch_entries,
+            sigma_plan,
         })
     }
 }
@@ -104,6 +124,11 @@ impl Emission for SkeletonEmission {
     fn eval_batch_serial(&self, states: &[f64], out: &mut [f64]) -> Result<()> {
         let (sk, cams, map, norm) = (&self.skeleton, &self.cameras, &self.map, &self.norm);
         emission_batch_into(sk, cams, map, norm, states, out, false)
+    }
+    fn eval_sigma(&self, mean: &[f64], sigma: &[f64], serial: bool, out: &mut [f64]) -> Result<()> {
+        let (sk, cams, map, norm) = (&self.skeleton, &self.cameras, &self.map, &self.norm);
+        let plan = &self.sigma_plan;
+        emission_sigma_into(sk, cams, map, norm, plan, mean, sigma, out, !serial)
     }
     fn block(&self) -> usize {
         2

@@ -36,8 +36,9 @@ fn frame_residual_moments<E: Emission + ?Sized>(
     let l = cholesky(&covs[k * n * n..(k + 1) * n * n], n, &|| {
         format!("the smoothed state covariance of frame {t}")
     })?;
-    sigma_points(&means[k * n..(k + 1) * n], &l, sigma);
-    em.eval_batch(sigma, g)?;
+    let mean = &means[k * n..(k + 1) * n];
+    sigma_points(mean, &l, sigma);
+    em.eval_sigma(mean, sigma, false, g)?;
     let xt = &x[t * n_x..(t + 1) * n_x];
     for j in 0..n_x {
         if m[j] != status::USED {
