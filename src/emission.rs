@@ -493,6 +493,29 @@ fn batch_with(
 pub struct SigmaPlan {
     dirty: Vec<FkDirty>,
     n_markers: usize,
+    /// What the plan was made from ([`Self::fits`]).
+    map: StateMap,
+    structure: Vec<usize>,
+}
+
+/// The parts of a skeleton a [`SigmaPlan`] depends on, in a fixed order: bones, the rotations
+/// acting on each, and the markers' joints and bones (not lengths, offsets or rest geometry).
+fn plan_structure(skeleton: &Skeleton) -> impl Iterator<Item = usize> + '_ {
+    let head = [skeleton.n_bones(), skeleton.n_markers()];
+    let bones = skeleton
+        .bones()
+        .iter()
+        .enumerate()
+        .flat_map(move |(b, &(a, e))| {
+            let acting = skeleton.acting_bones(b);
+            [a, e, acting.len()]
+                .into_iter()
+                .chain(acting.iter().copied())
+        });
+    head.into_iter()
+        .chain(bones)
+        .chain(skeleton.marker_joints().iter().copied())
+        .chain(skeleton.marker_bones().iter().copied())
 }
 
 impl SigmaPlan {
@@ -518,7 +541,15 @@ impl SigmaPlan {
         Self {
             dirty,
             n_markers: skeleton.n_markers(),
+            map: map.clone(),
+            structure: plan_structure(skeleton).collect(),
         }
+    }
+
+    /// Whether the plan was made for this skeleton's structure and this map (e.g. not after
+    /// a caller replaced the model's skeleton).
+    pub fn fits(&self, skeleton: &Skeleton, map: &StateMap) -> bool {
+        *map == self.map && plan_structure(skeleton).eq(self.structure.iter().copied())
     }
 
     /// Mean fraction of the markers that a sigma point moves (1: no saving).
@@ -557,7 +588,8 @@ impl RowsPtr {
 ///
 /// # Errors
 /// As [`emission_batch_into`], plus shape errors for `mean` and for a `sigma` of other than
-/// `2n` rows, and a non-finite error for the centre.
+/// `2n` rows, a non-finite error for the centre, and an invalid error for a plan made for
+/// another skeleton or map.
 #[allow(clippy::too_many_arguments)]
 pub fn emission_sigma_into(
     skeleton: &Skeleton,
@@ -576,7 +608,11 @@ pub fn emission_sigma_into(
     let ns = map.n_state();
     ensure_len(mean.len(), ns, "sigma point centre")?;
     ensure_len(sigma.len(), 2 * ns * ns, "sigma points (2n × n)")?;
-    ensure_len(plan.dirty.len(), ns, "sigma plan")?;
+    if !plan.fits(skeleton, map) {
+        return Err(AcmError::Invalid(
+            "the sigma plan was made for another skeleton or state map".into(),
+        ));
+    }
     if mean.iter().any(|v| !v.is_finite()) {
         return Err(AcmError::NonFinite(
             "sigma point centre contains NaN or infinity".into(),
@@ -602,6 +638,12 @@ pub fn emission_sigma_into(
                 sc.pose.resize(skeleton.n_pose(), 0.0);
                 sc.markers.resize(3 * n_m, 0.0);
                 sc.centre_pixels.resize(block, 0.0);
+                // room for every marker at once: which points a thread gets varies from step
+                // to step, and a later, larger set must not allocate (the online promise)
+                sc.sub_markers.clear();
+                sc.sub_markers.reserve(3 * n_m);
+                sc.sub_pixels.clear();
+                sc.sub_pixels.reserve(block);
                 let offsets = skeleton.offsets();
                 let mut centre_held = false;
                 for i in (0..ns).rev().filter(|i| i % tasks == c) {
@@ -805,6 +847,45 @@ mod tests {
             );
             assert!(matches!(bad, Err(AcmError::NonFinite(_))));
         }
+        // a plan made for another skeleton is refused; a model whose public skeleton was
+        // replaced after construction falls back to the full evaluation (the same values)
+        use crate::tracking::{Emission, SkeletonEmission};
+        let (tree, n_b) = (branching(), branching().n_bones());
+        let mut lm = tree.bone_links();
+        lm[2 * n_b + 4] = true;
+        let linked = tree.clone().with_links(&lm, None).unwrap();
+        let inf = vec![f64::INFINITY; 3 * n_b];
+        let neg: Vec<f64> = inf.iter().map(|v| -v).collect();
+        let map = StateMap::new(n_b, &neg, &inf, &norm, false).unwrap();
+        let n = map.n_state();
+        let m: Vec<f64> = (0..n).map(|i| 0.01 * i as f64).collect();
+        let l: Vec<f64> = (0..n * n)
+            .map(|e| {
+                if e % n >= e / n {
+                    0.02 + 0.001 * (e % 7) as f64
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let sigma = sigma_of(&m, &l);
+        let block = cams.len() * tree.n_markers() * 2;
+        let mut out = vec![0.0; 2 * n * block];
+        let plan = SigmaPlan::new(&tree, &map);
+        assert!(plan.fits(&tree, &map) && !plan.fits(&linked, &map));
+        let bad = emission_sigma_into(
+            &linked, &cams, &map, &norm, &plan, &m, &sigma, &mut out, false,
+        );
+        assert!(matches!(bad, Err(AcmError::Invalid(_))));
+        let mut em = SkeletonEmission::new(tree, cams.clone(), map.clone(), norm).unwrap();
+        em.skeleton = linked.clone();
+        em.eval_sigma(&m, &sigma, true, &mut out).unwrap();
+        let mut want = vec![0.0; 2 * n * block];
+        emission_batch_into(&linked, &cams, &map, &norm, &sigma, &mut want, false).unwrap();
+        assert!(out
+            .iter()
+            .zip(&want)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
     }
 
     #[test]

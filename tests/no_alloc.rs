@@ -101,10 +101,16 @@ fn allocations(mode: Mode, counted: usize) -> usize {
         .unwrap();
     // every worker's scratch sized before counting (otherwise a worker's first task sizes
     // it, which on a many-core machine may come late)
+    // (the sigma points' scratch too: the centre and 2n copies of it)
+    let sigma: Vec<f64> = states[..n].repeat(2 * n);
     let warm = |_: rayon::BroadcastContext<'_>| {
         let mut g = vec![0.0; n_x];
         tr.emission()
             .eval_batch_serial(&states[..n], &mut g)
+            .unwrap();
+        let mut gs = vec![0.0; 2 * n * n_x];
+        tr.emission()
+            .eval_sigma(&states[..n], &sigma, true, &mut gs)
             .unwrap();
     };
     // (and every thread of both pools started: a starting thread allocates)

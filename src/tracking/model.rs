@@ -128,6 +128,10 @@ impl Emission for SkeletonEmission {
     fn eval_sigma(&self, mean: &[f64], sigma: &[f64], serial: bool, out: &mut [f64]) -> Result<()> {
         let (sk, cams, map, norm) = (&self.skeleton, &self.cameras, &self.map, &self.norm);
         let plan = &self.sigma_plan;
+        if !plan.fits(sk, map) {
+            // the public fields were replaced after `new`: no shortcut
+            return emission_batch_into(sk, cams, map, norm, sigma, out, !serial);
+        }
         emission_sigma_into(sk, cams, map, norm, plan, mean, sigma, out, !serial)
     }
     fn block(&self) -> usize {
