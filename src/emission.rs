@@ -552,6 +552,12 @@ impl SigmaPlan {
         *map == self.map && plan_structure(skeleton).eq(self.structure.iter().copied())
     }
 
+    /// What the sigma points of state entry `i` move (the points differ from the centre in
+    /// the entries `i..n` only).
+    pub fn dirty(&self, i: usize) -> &FkDirty {
+        &self.dirty[i]
+    }
+
     /// Mean fraction of the markers that a sigma point moves (1: no saving).
     pub fn moving_fraction(&self) -> f64 {
         let moved: usize = self.dirty.iter().map(|d| d.markers().len()).sum();

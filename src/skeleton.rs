@@ -81,6 +81,10 @@ pub struct FkWorkspace {
 }
 
 impl FkWorkspace {
+    /// The joint positions of the last forward kinematics evaluated in this workspace.
+    pub fn joints(&self) -> &[Vector3<f64>] {
+        &self.joints
+    }
     /// Copies `other`'s values (same sizes) without allocating.
     pub fn copy_from(&mut self, other: &FkWorkspace) {
         self.q.copy_from_slice(&other.q);
@@ -120,6 +124,14 @@ impl FkDirty {
     /// The markers that move, ascending.
     pub fn markers(&self) -> &[usize] {
         &self.markers
+    }
+    /// The joints other than the root that move, in forward-kinematics order.
+    pub fn joints(&self) -> &[usize] {
+        &self.joints
+    }
+    /// Whether the root translation (so the root joint) moves.
+    pub fn translation(&self) -> bool {
+        self.translation
     }
 }
 

@@ -8,7 +8,8 @@
 
 use crate::error::{AcmError, Result};
 use crate::kernels::{
-    cholesky_in_place, lower_solve_in_place, lower_tr_solve_in_place, syrk_rows_lower,
+    cholesky_in_place, lower_solve_blocked, lower_solve_in_place, lower_tr_solve_blocked,
+    lower_tr_solve_in_place, syrk_rows_lower,
 };
 use nalgebra::{DMatrix, DVector};
 
@@ -112,11 +113,12 @@ pub fn chol_solve_vec(l: &DMatrix<f64>, b: &mut DVector<f64>) {
     lower_tr_solve_in_place(l.as_slice(), n, b.as_mut_slice());
 }
 
-/// Solves `L Lᵀ X = B` in place for a lower Cholesky factor `l` (columns of `b`).
+/// Solves `L Lᵀ X = B` in place for a lower Cholesky factor `l` (columns of `b`; blocked
+/// solves with packed GEMMs for many columns).
 pub fn chol_solve_mat(l: &DMatrix<f64>, b: &mut DMatrix<f64>) {
     let n = l.nrows();
-    lower_solve_in_place(l.as_slice(), n, b.as_mut_slice());
-    lower_tr_solve_in_place(l.as_slice(), n, b.as_mut_slice());
+    lower_solve_blocked(l.as_slice(), n, b.as_mut_slice());
+    lower_tr_solve_blocked(l.as_slice(), n, b.as_mut_slice());
 }
 
 /// `c ← c + a aᵀ` for `a` stored row-major as `rows × k` (each row one vector), `c` the

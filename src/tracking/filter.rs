@@ -383,6 +383,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
         &mut ws.b,
         frame,
         !ws.serial,
+        Some(&mut *v_out),
         &mut ws.up,
     )?;
     if relinearize > 0 {
@@ -414,7 +415,10 @@ pub(crate) fn step<E: Emission + ?Sized>(
             }
             let mbar = ws.mbar.clone();
             let l_full = DMatrix::from_column_slice(ns, ns, &ws.lfull);
-            let (first, xhat, vx_eff) = (ws.up.clone(), ws.xhat.clone(), ws.vx_eff.clone());
+            // (the first update's covariance went straight to `v_out`)
+            let mut first = ws.up.clone();
+            first.v = v_out.to_vec();
+            let (xhat, vx_eff) = (ws.xhat.clone(), ws.vx_eff.clone());
             if let Some(better) = relinearized(
                 em,
                 &mbar,
@@ -427,12 +431,15 @@ pub(crate) fn step<E: Emission + ?Sized>(
                 frame,
                 ws,
             )? {
-                ws.up = better;
                 stats.relinearized_frames += 1;
+                finish(&better, &ws.used, &ws.vx_eff, stats, mu_out, v_out);
+                ws.up = better;
+                return Ok(());
             }
         }
     }
-    finish(&ws.up, &ws.used, &ws.vx_eff, stats, mu_out, v_out);
+    // (V is in `v_out` already)
+    finish_mean(&ws.up, &ws.used, &ws.vx_eff, stats, mu_out);
     Ok(())
 }
 
@@ -484,10 +491,21 @@ fn finish(
     mu_out: &mut [f64],
     v_out: &mut [f64],
 ) {
+    finish_mean(up, used, vx_eff, stats, mu_out);
+    v_out.copy_from_slice(&up.v);
+}
+
+/// [`finish`] for an update whose covariance [`linear_update`] wrote to the output itself.
+fn finish_mean(
+    up: &Update,
+    used: &[usize],
+    vx_eff: &[f64],
+    stats: &mut FilterStats,
+    mu_out: &mut [f64],
+) {
     let log_det_vx: f64 = used.iter().map(|&j| vx_eff[j].ln()).sum();
     stats.log_lik += up.log_lik - 0.5 * log_det_vx;
     mu_out.copy_from_slice(&up.mu);
-    v_out.copy_from_slice(&up.v);
 }
 
 /// The update of a frame whose prior `(m̄, L̃)` is too broad for the unscented transform (e.g. after a
@@ -582,7 +600,9 @@ struct Update {
 /// work), and `UᵀU` sums over `n` rows instead of `2n` (half).
 ///
 /// `l_full` is `L̃` (column-major `ns × ns`); `gram`, `u`, `b` are scratch (`gram` ends
-/// as the factor of `M`); the result goes to `out`, whose buffers are reused.
+/// as the factor of `M`); the result goes to `out`, whose buffers are reused, except the
+/// covariance when `v_dst` is given: it is written there (e.g. the filter's output row, which
+/// saves a copy of `ns²` values) and `out.v` is left as it was.
 #[allow(clippy::too_many_arguments)]
 fn linear_update(
     mbar: &[f64],
@@ -595,6 +615,7 @@ fn linear_update(
     b: &mut Vec<f64>,
     frame: usize,
     parallel: bool,
+    v_dst: Option<&mut [f64]>,
     out: &mut Update,
 ) -> Result<()> {
     let ns = mbar.len();
@@ -665,14 +686,20 @@ fn linear_update(
     } else {
         lower_solve_in_place(b, n, u);
     }
-    out.v.clear();
-    out.v.resize(ns * ns, 0.0);
-    at_a_into(u, n, ns, &mut out.v, parallel);
+    let v = match v_dst {
+        Some(v) => v,
+        None => {
+            out.v.clear();
+            out.v.resize(ns * ns, 0.0);
+            &mut out.v[..]
+        }
+    };
+    at_a_into(u, n, ns, v, parallel);
     if ns > n {
         // + L̃[:, n:] L̃[:, n:]ᵀ
-        add_a_at(&l_full[n * ns..], ns, ns - n, &mut out.v);
+        add_a_at(&l_full[n * ns..], ns, ns - n, v);
     }
-    symmetrize_slice(&mut out.v, ns);
+    symmetrize_slice(v, ns);
     Ok(())
 }
 
@@ -701,6 +728,7 @@ fn fresh_update(
         b,
         frame,
         par,
+        None,
         &mut up,
     )?;
     Ok(up)

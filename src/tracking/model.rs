@@ -110,6 +110,16 @@ impl SkeletonEmission {
     }
 }
 
+impl SkeletonEmission {
+    /// The sigma plan of the skeleton and map, if they are still the ones it was made for
+    /// (the public fields can be replaced after [`Self::new`]).
+    pub(crate) fn sigma_plan(&self) -> Option<&SigmaPlan> {
+        self.sigma_plan
+            .fits(&self.skeleton, &self.map)
+            .then_some(&self.sigma_plan)
+    }
+}
+
 impl Emission for SkeletonEmission {
     fn n_state(&self) -> usize {
         self.map.n_state()

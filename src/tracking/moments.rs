@@ -9,6 +9,8 @@ use super::filter::sigma_points;
 use super::model::SkeletonEmission;
 use crate::emission::state_forward_into;
 use crate::error::{ensure_len, Result};
+#[cfg(test)]
+use nalgebra::DMatrix;
 use rayon::prelude::*;
 
 /// Posterior summaries of `T` frames.
@@ -42,6 +44,7 @@ pub fn posterior_poses(
     ensure_len(means.len(), t_len * n, "state means (T, n)")?;
     ensure_len(covs.len(), t_len * n * n, "state covariances (T, n, n)")?;
     let (np, nj, nm) = (sk.n_pose(), sk.n_joints(), sk.n_markers());
+    let plan = model.sigma_plan();
     let mut out = PosteriorPoses {
         poses: vec![0.0; t_len * np],
         joints: vec![0.0; t_len * nj * 3],
@@ -78,30 +81,214 @@ pub fn posterior_poses(
                 let mut jsq = vec![0.0; nj * 3];
                 let mut msum = vec![0.0; nm * 3];
                 let mut msq = vec![0.0; nm * 3];
-                for z in sigma.chunks_exact(n) {
-                    state_forward_into(sk, &model.map, z, ws, pose, len, Some(jb), mb);
-                    for (k, v) in jb.iter().enumerate() {
-                        let d = v - jo[k];
-                        jsum[k] += d;
-                        jsq[k] += d * d;
+                let add = |sum: &mut [f64], sq: &mut [f64], k: usize, d: f64| {
+                    sum[k] += d;
+                    sq[k] += d * d;
+                };
+                let Some(plan) = plan else {
+                    for z in sigma.chunks_exact(n) {
+                        state_forward_into(sk, &model.map, z, ws, pose, len, Some(jb), mb);
+                        for (k, v) in jb.iter().enumerate() {
+                            add(&mut jsum, &mut jsq, k, v - jo[k]);
+                        }
+                        for (k, v) in mb.iter().enumerate() {
+                            add(&mut msum, &mut msq, k, v - mo[k]);
+                        }
                     }
-                    for (k, v) in mb.iter().enumerate() {
-                        let d = v - mo[k];
-                        msum[k] += d;
-                        msq[k] += d * d;
+                    return finish(2 * n, &jsum, &jsq, &msum, &msq, js, ms);
+                };
+                // Sigma points of a lower-triangular factor: point i (rows i and n + i)
+                // differs from the centre in the entries i..n only, so only the joints and
+                // markers those move are recomputed (`SigmaPlan`, as in the filter's
+                // emission); the others deviate from the centre by exactly 0 and add
+                // nothing. Descending i: each point recomputes a superset of what the point
+                // before changed, so the workspace holds the centre everywhere else.
+                let mut centre_held = false;
+                for i in (0..n).rev() {
+                    let d = plan.dirty(i);
+                    for row in [i, n + i] {
+                        let z = &sigma[row * n..(row + 1) * n];
+                        if z[..i] != mu[..i] {
+                            // (not of a lower-triangular factor: in full)
+                            state_forward_into(sk, &model.map, z, ws, pose, len, Some(jb), mb);
+                            for (k, v) in jb.iter().enumerate() {
+                                add(&mut jsum, &mut jsq, k, v - jo[k]);
+                            }
+                            for (k, v) in mb.iter().enumerate() {
+                                add(&mut msum, &mut msq, k, v - mo[k]);
+                            }
+                            centre_held = false;
+                            continue;
+                        }
+                        if !centre_held {
+                            state_forward_into(sk, &model.map, mu, ws, pose, len, None, mb);
+                            centre_held = true;
+                        }
+                        model.map.to_pose_tail_into(z, pose, i);
+                        model.map.lengths_into(z, sk.lengths(), len);
+                        let (t, r) = pose.split_at(3);
+                        sk.forward_dirty_into(t, r, len, sk.offsets(), ws, d, mb);
+                        let root = d.translation().then_some(sk.root());
+                        for &j in root.iter().chain(d.joints()) {
+                            let p = ws.joints()[j];
+                            for a in 0..3 {
+                                add(&mut jsum, &mut jsq, 3 * j + a, p[a] - jo[3 * j + a]);
+                            }
+                        }
+                        for &m in d.markers() {
+                            for k in 3 * m..3 * m + 3 {
+                                add(&mut msum, &mut msq, k, mb[k] - mo[k]);
+                            }
+                        }
                     }
                 }
-                let w = 1.0 / (2 * n) as f64;
-                for (k, s) in js.iter_mut().enumerate() {
-                    let m = jsum[k] * w;
-                    *s = (jsq[k] * w - m * m).max(0.0).sqrt();
-                }
-                for (k, s) in ms.iter_mut().enumerate() {
-                    let m = msum[k] * w;
-                    *s = (msq[k] * w - m * m).max(0.0).sqrt();
-                }
-                Ok(())
+                finish(2 * n, &jsum, &jsq, &msum, &msq, js, ms)
             },
         )?;
     Ok(out)
+}
+
+/// The SDs of the unscented transform (eq. 43, weights `1/(2n)`) from the sums of the sigma
+/// points' deviations from the centre and of their squares.
+fn finish(
+    n_points: usize,
+    jsum: &[f64],
+    jsq: &[f64],
+    msum: &[f64],
+    msq: &[f64],
+    js: &mut [f64],
+    ms: &mut [f64],
+) -> Result<()> {
+    let w = 1.0 / n_points as f64;
+    for (k, s) in js.iter_mut().enumerate() {
+        let m = jsum[k] * w;
+        *s = (jsq[k] * w - m * m).max(0.0).sqrt();
+    }
+    for (k, s) in ms.iter_mut().enumerate() {
+        let m = msum[k] * w;
+        *s = (msq[k] * w - m * m).max(0.0).sqrt();
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use crate::limits::StateMap;
+    use crate::normalization::Normalization;
+    use crate::skeleton::tests::branching;
+
+    /// The posterior SDs with the sigma plan equal those of every sigma point's full forward
+    /// kinematics (summed in row order here), for a tree, a link matrix and elastic bones.
+    #[test]
+    fn posterior_sds_equal_the_full_unscented_transform() {
+        let cam = Camera::from_params(&[
+            0.0, 0.0, 0.0, 0.0, 0.0, 20.0, 800.0, 800.0, 640.0, 512.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+        ])
+        .unwrap();
+        let norm = Normalization::default();
+        for case in ["tree", "link matrix", "stretch"] {
+            let mut sk = branching();
+            let n_b = sk.n_bones();
+            if case == "link matrix" {
+                let mut lm = sk.bone_links();
+                lm[..n_b].iter_mut().for_each(|v| *v = true);
+                lm[2 * n_b + 4] = true;
+                sk = sk.with_links(&lm, None).unwrap();
+            }
+            let inf = f64::INFINITY;
+            let (mut lower, mut upper) = (vec![-inf; 3 * n_b], vec![inf; 3 * n_b]);
+            lower[6] = -0.4; // a bounded entry
+            upper[6] = 0.9;
+            let mut map = StateMap::new(n_b, &lower, &upper, &norm, true).unwrap();
+            if case == "stretch" {
+                map = map.with_stretch(&[3, 1]).unwrap();
+            }
+            let model = SkeletonEmission::new(sk, vec![cam.clone()], map, norm).unwrap();
+            assert!(model.sigma_plan().is_some());
+            let n = model.map.n_state();
+            let frames = 3;
+            let means: Vec<f64> = (0..frames * n)
+                .map(|i| ((i * 37 % 17) as f64 - 8.0) * 0.03)
+                .collect();
+            let mut covs = Vec::new();
+            for t in 0..frames {
+                let a = DMatrix::from_fn(n, n, |r, c| {
+                    (((r * 7 + c * 13 + t) % 11) as f64 - 5.0) * 0.01
+                });
+                let v = &a * a.transpose() + DMatrix::identity(n, n) * 1e-3;
+                covs.extend_from_slice(v.as_slice());
+            }
+            let got = posterior_poses(&model, &means, &covs).unwrap();
+            let sk = &model.skeleton;
+            let (nj, nm) = (sk.n_joints(), sk.n_markers());
+            let mut ws = sk.workspace();
+            let (mut pose, mut len) = (vec![0.0; sk.n_pose()], vec![0.0; sk.n_bones()]);
+            let (mut j0, mut m0) = (vec![0.0; 3 * nj], vec![0.0; 3 * nm]);
+            let (mut jz, mut mz) = (vec![0.0; 3 * nj], vec![0.0; 3 * nm]);
+            for t in 0..frames {
+                let mu = &means[t * n..(t + 1) * n];
+                let map = &model.map;
+                state_forward_into(
+                    sk,
+                    map,
+                    mu,
+                    &mut ws,
+                    &mut pose,
+                    &mut len,
+                    Some(&mut j0),
+                    &mut m0,
+                );
+                let l = cholesky(&covs[t * n * n..(t + 1) * n * n], n, &String::new).unwrap();
+                let mut sigma = vec![0.0; 2 * n * n];
+                sigma_points(mu, &l, &mut sigma);
+                let (mut js, mut jq) = (vec![0.0; 3 * nj], vec![0.0; 3 * nj]);
+                let (mut ms, mut mq) = (vec![0.0; 3 * nm], vec![0.0; 3 * nm]);
+                for z in sigma.chunks_exact(n) {
+                    state_forward_into(
+                        sk,
+                        map,
+                        z,
+                        &mut ws,
+                        &mut pose,
+                        &mut len,
+                        Some(&mut jz),
+                        &mut mz,
+                    );
+                    for k in 0..3 * nj {
+                        js[k] += jz[k] - j0[k];
+                        jq[k] += (jz[k] - j0[k]).powi(2);
+                    }
+                    for k in 0..3 * nm {
+                        ms[k] += mz[k] - m0[k];
+                        mq[k] += (mz[k] - m0[k]).powi(2);
+                    }
+                }
+                let w = 1.0 / (2 * n) as f64;
+                let sd = |s: f64, q: f64| (q * w - (s * w).powi(2)).max(0.0).sqrt();
+                let mut moved = 0;
+                for k in 0..3 * nj {
+                    let want = sd(js[k], jq[k]);
+                    let have = got.joints_std[t * 3 * nj + k];
+                    assert!(
+                        (have - want).abs() <= 1e-12 * (1.0 + want),
+                        "{case} joint {k}: {have} vs {want}"
+                    );
+                    moved += usize::from(want > 0.0);
+                }
+                for k in 0..3 * nm {
+                    let want = sd(ms[k], mq[k]);
+                    let have = got.markers_std[t * 3 * nm + k];
+                    assert!(
+                        (have - want).abs() <= 1e-12 * (1.0 + want),
+                        "{case} marker {k}: {have} vs {want}"
+                    );
+                }
+                assert!(moved > 3 * nj / 2, "{case}: the joints have spread");
+                assert_eq!(&got.joints[t * 3 * nj..(t + 1) * 3 * nj], &j0[..]);
+                assert_eq!(&got.markers[t * 3 * nm..(t + 1) * 3 * nm], &m0[..]);
+            }
+        }
+    }
 }

@@ -12,9 +12,10 @@
 //! with `d = μ̂_t − μ̂_{t-1}` and the pairwise covariance of eq. 59. (The Python tests check
 //! this against the literal sigma-point computation.) No gain needs to be stored.
 
-use super::dense::{chol_solve_mat, cholesky, symmetrize};
+use super::dense::{chol_solve_mat, cholesky, symmetrize, symmetrize_slice};
 use super::filter::{f_left, f_right, Transition};
 use crate::error::Result;
+use crate::kernels::gemm;
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 
@@ -107,21 +108,23 @@ fn smooth_pipelined(
                  means: &mut [f64],
                  covs: &mut [f64],
                  mut acc: Option<&mut DMatrix<f64>>| {
+        let mut scratch = (Vec::new(), Vec::new());
         for t in (lo..hi).rev() {
             let (gt, p) = &g[t - lo];
             let (cov_head, cov_tail) = covs.split_at_mut((t + 1 - lo) * nn);
-            let vf = DMatrix::from_column_slice(ns, ns, &cov_head[(t - lo) * nn..]);
-            let vs_next = DMatrix::from_column_slice(ns, ns, &cov_tail[..nn]);
             let (mean_head, mean_tail) = means.split_at_mut((t + 1 - lo) * ns);
+            let (vs_next, ms_next) = (&cov_tail[..nn], &mean_tail[..ns]);
             let mf = DVector::from_column_slice(&mean_head[(t - lo) * ns..]);
-            let ms_next = DVector::from_column_slice(&mean_tail[..ns]);
-            let (ms, vs) = rts_apply(&mf, &vf, gt, p, &ms_next, Some(&vs_next), tr);
-            let vs = vs.expect("asked for");
+            let ms = smoothed_mean(&mf, gt, ms_next, tr);
+            let cov = &mut cov_head[(t - lo) * nn..];
+            smoothed_cov_in_place(cov, gt.as_slice(), p.as_slice(), vs_next, &mut scratch);
             if let Some(acc) = acc.as_deref_mut() {
-                add_statistic(acc, &ms, &vs, &ms_next, &vs_next, gt, tr);
+                let vs = DMatrix::from_column_slice(ns, ns, cov);
+                let vn = DMatrix::from_column_slice(ns, ns, vs_next);
+                let mn = DVector::from_column_slice(ms_next);
+                add_statistic(acc, &ms, &vs, &mn, &vn, gt, tr);
             }
             mean_head[(t - lo) * ns..].copy_from_slice(ms.as_slice());
-            cov_head[(t - lo) * nn..].copy_from_slice(vs.as_slice());
         }
     };
     let mut hi = steps - 1;
@@ -195,6 +198,60 @@ pub(crate) fn rts_gain(
     Ok((gt, p))
 }
 
+/// Line 7 of Alg. 8: `μ̂_t = μ̃_t + G (μ̂_{t+1} − F μ̃_t)`.
+fn smoothed_mean(
+    mf: &DVector<f64>,
+    gt: &DMatrix<f64>,
+    ms_next: &[f64],
+    tr: Transition<'_>,
+) -> DVector<f64> {
+    let ns = mf.len();
+    let fm = f_left(&DMatrix::from_column_slice(ns, 1, mf.as_slice()), tr);
+    let d = DVector::from_column_slice(ms_next) - fm.column(0);
+    mf + gt.tr_mul(&d)
+}
+
+/// Line 8 of Alg. 8 in place: `cov` holds `Ṽ_t` (column-major `ns × ns`) and becomes
+/// `V̂_t = Ṽ_t + G (V̂_{t+1} − P) Gᵀ`, by two packed GEMMs (the second adds `Gᵀᵀ T` into
+/// `cov` directly; no copies), then symmetrised. `scratch` holds `V̂_{t+1} − P` and `T`.
+fn smoothed_cov_in_place(
+    cov: &mut [f64],
+    gt: &[f64],
+    p: &[f64],
+    vs_next: &[f64],
+    scratch: &mut (Vec<f64>, Vec<f64>),
+) {
+    let nn = cov.len();
+    let ns = (nn as f64).sqrt().round() as usize;
+    let (a, tmp) = scratch;
+    a.clear();
+    a.extend(vs_next.iter().zip(p).map(|(v, q)| v - q));
+    tmp.clear();
+    tmp.resize(nn, 0.0);
+    // SAFETY: all operands are ns × ns column-major slices of their own (`cov` is written
+    // only by the second product, which reads `gt` and `tmp`).
+    unsafe {
+        // T = (V̂_{t+1} − P) Gᵀ, then cov += G T with G = (Gᵀ)ᵀ
+        gemm(
+            (ns, ns, ns),
+            1.0,
+            (a.as_ptr(), ns, false),
+            (gt.as_ptr(), ns),
+            0.0,
+            (tmp.as_mut_ptr(), ns),
+        );
+        gemm(
+            (ns, ns, ns),
+            1.0,
+            (gt.as_ptr(), ns, true),
+            (tmp.as_ptr(), ns),
+            1.0,
+            (cov.as_mut_ptr(), ns),
+        );
+    }
+    symmetrize_slice(cov, ns);
+}
+
 /// Lines 5-8 of Alg. 8 with the gain of [`rts_gain`]: `μ̂_t = μ̃_t + G (μ̂_{t+1} − F μ̃_t)` and,
 /// if `vs_next` is given, `V̂_t = Ṽ_t + G (V̂_{t+1} − P) Gᵀ`.
 pub(crate) fn rts_apply(
@@ -206,15 +263,16 @@ pub(crate) fn rts_apply(
     vs_next: Option<&DMatrix<f64>>,
     tr: Transition<'_>,
 ) -> (DVector<f64>, Option<DMatrix<f64>>) {
-    let ns = mf.len();
-    let fm = f_left(&DMatrix::from_column_slice(ns, 1, mf.as_slice()), tr);
-    let ms = mf + gt.tr_mul(&(ms_next - fm.column(0)));
+    let ms = smoothed_mean(mf, gt, ms_next.as_slice(), tr);
     let vs = vs_next.map(|vn| {
-        // both products by matrixmultiply's packed GEMM (`tr_mul` takes a dot product per
-        // entry: 2-3× slower at ns = 87-100); the copy of `G` costs ns² moves
-        let g = gt.transpose();
-        let mut vs = vf + g * ((vn - p) * gt);
-        symmetrize(&mut vs);
+        let mut vs = vf.clone();
+        smoothed_cov_in_place(
+            vs.as_mut_slice(),
+            gt.as_slice(),
+            p.as_slice(),
+            vn.as_slice(),
+            &mut (Vec::new(), Vec::new()),
+        );
         vs
     });
     (ms, vs)
