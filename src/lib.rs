@@ -33,6 +33,7 @@ pub mod npz;
 pub mod rotation;
 pub mod skeleton;
 pub mod symmetry;
+pub mod team;
 pub mod tracking;
 
 #[cfg(feature = "python")]

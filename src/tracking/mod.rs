@@ -208,9 +208,11 @@ pub struct Tracker<E: Emission> {
 pub enum FrameParallelism {
     /// Time both modes on [`MODE_TRIAL`] alternating frames each early in every
     /// [`MODE_PERIOD`] frames and keep the faster by median (default). On the 2-vCPU machine of
-    /// `benches/README.md` one thread per frame was faster for the 50-entry rat (2,035 vs
-    /// 1,790 frames/s) and both 100- and 174-entry velocity states; two were faster for the
-    /// 87-entry random walk (770 vs 694).
+    /// `benches/README.md`, with rayon's hand-offs, one thread per frame was faster for the
+    /// 50-entry rat (2,035 vs 1,790 frames/s) and both 100- and 174-entry velocity states;
+    /// two were faster for the 87-entry random walk (770 vs 694). With the spinning
+    /// [`crate::team::Team`] two threads are faster for the 100-entry velocity state too
+    /// (433-445 vs 487 µs a step).
     Auto,
     /// Every step on the calling thread.
     Serial,
