@@ -353,8 +353,8 @@ pub(crate) fn step<E: Emission + ?Sized>(
         v_out.copy_from_slice(&ws.p);
         return Ok(());
     }
-    // Whitened deviations Ỹ (2n × n_p, row = sigma point) and innovation ν̃.
-    ws.ytil.clear();
+    // Whitened deviations Ỹ (2n × n_p, row = sigma point) and innovation ν̃ (`whitened_pairs`
+    // writes every entry of Ỹ: no zeroing)
     ws.ytil.resize(m2 * np, 0.0);
     ws.scale.clear();
     ws.scale
@@ -670,8 +670,7 @@ fn linear_update(
         b[c * n..(c + 1) * n].copy_from_slice(&lm[(n + c) * m2 + n..(n + c + 1) * m2]);
     }
     // U = L₂₂⁻¹ Wᵀ (n × ns): column r holds row r of W.
-    u.clear();
-    u.resize(n * ns, 0.0);
+    u.resize(n * ns, 0.0); // (every entry written below)
     for r in 0..ns {
         for c in 0..n {
             u[r * n + c] = l_full[c * ns + r];
