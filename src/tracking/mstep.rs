@@ -38,7 +38,9 @@ fn frame_residual_moments<E: Emission + ?Sized>(
     })?;
     let mean = &means[k * n..(k + 1) * n];
     sigma_points(mean, &l, sigma);
-    em.eval_sigma(mean, sigma, false, g)?;
+    // on this thread: the callers run frames in parallel already (a spinning team inside
+    // would compete with rayon's workers for the cores)
+    em.eval_sigma(mean, sigma, true, g)?;
     let xt = &x[t * n_x..(t + 1) * n_x];
     for j in 0..n_x {
         if m[j] != status::USED {
