@@ -263,6 +263,17 @@ pub(crate) unsafe fn gemm(
     );
 }
 
+/// The number of right-hand sides `k` of a blocked solve with `l` (`n × n`) and `b`
+/// (`n × k`), or `None` where the column kernel is as fast (small `n` or few columns).
+///
+/// # Panics
+/// If the sizes do not fit.
+fn blocked_columns(l: &[f64], n: usize, b: &[f64]) -> Option<usize> {
+    let k = b.len().checked_div(n).unwrap_or(0);
+    assert!(l.len() >= n * n && b.len() == n * k);
+    (n > TRSM_BLOCK && k >= 4).then_some(k)
+}
+
 /// [`lower_solve_in_place`] for many right-hand sides, blocked: each diagonal block of
 /// [`TRSM_BLOCK`] rows is inverted (a few hundred multiply-adds) and applied, and the rows
 /// below it are updated, by packed GEMMs (`matrixmultiply`: ~25 GFLOP/s of multiply-adds at
@@ -271,16 +282,11 @@ pub(crate) unsafe fn gemm(
 /// blocks' inverses: for the well-conditioned factors of covariances that is ~1e-13
 /// relative, tested); allocates its scratch, so not for the online filter's step.
 pub fn lower_solve_blocked(l: &[f64], n: usize, b: &mut [f64]) {
-    lower_solve_blocked_nb(l, n, b, TRSM_BLOCK)
-}
-
-fn lower_solve_blocked_nb(l: &[f64], n: usize, b: &mut [f64], nbk: usize) {
-    let k = b.len().checked_div(n).unwrap_or(0);
-    assert!(l.len() >= n * n && b.len() == n * k);
-    if n <= nbk || k < 4 {
+    let Some(k) = blocked_columns(l, n, b) else {
         lower_solve_in_place(l, n, b);
         return;
-    }
+    };
+    let nbk = TRSM_BLOCK;
     let (mut li, mut xb) = (Vec::new(), Vec::new());
     let mut j0 = 0;
     while j0 < n {
@@ -326,16 +332,11 @@ fn lower_solve_blocked_nb(l: &[f64], n: usize, b: &mut [f64], nbk: usize) {
 /// `L[below, block]ᵀ X[below]`, then get the transposed inverse of the block, both by packed
 /// GEMMs.
 pub fn lower_tr_solve_blocked(l: &[f64], n: usize, b: &mut [f64]) {
-    lower_tr_solve_blocked_nb(l, n, b, TRSM_BLOCK)
-}
-
-fn lower_tr_solve_blocked_nb(l: &[f64], n: usize, b: &mut [f64], nbk: usize) {
-    let k = b.len().checked_div(n).unwrap_or(0);
-    assert!(l.len() >= n * n && b.len() == n * k);
-    if n <= nbk || k < 4 {
+    let Some(k) = blocked_columns(l, n, b) else {
         lower_tr_solve_in_place(l, n, b);
         return;
-    }
+    };
+    let nbk = TRSM_BLOCK;
     let (mut li, mut xb) = (Vec::new(), Vec::new());
     let mut j1 = n;
     while j1 > 0 {
