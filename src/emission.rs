@@ -723,7 +723,7 @@ pub fn emission_sigma_into(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::skeleton::tests::branching;
 
@@ -755,6 +755,36 @@ mod tests {
         vec![c0, c1]
     }
 
+    /// The skeletons and maps on which the sigma-point shortcuts are tested: the branching
+    /// tree, the same with a link matrix (every bone also turned by bone 0, and bone 2
+    /// turning bone 4), and with elastic bones; one state entry fixed, one bounded.
+    pub(crate) fn sigma_cases(norm: &Normalization) -> Vec<(&'static str, Skeleton, StateMap)> {
+        ["tree", "link matrix", "stretch"]
+            .into_iter()
+            .map(|case| {
+                let mut sk = branching();
+                let n_b = sk.n_bones();
+                if case == "link matrix" {
+                    let mut lm = sk.bone_links();
+                    lm[..n_b].iter_mut().for_each(|v| *v = true);
+                    lm[2 * n_b + 4] = true;
+                    sk = sk.with_links(&lm, None).unwrap();
+                }
+                let inf = f64::INFINITY;
+                let (mut lower, mut upper) = (vec![-inf; 3 * n_b], vec![inf; 3 * n_b]);
+                lower[5] = 0.0; // a fixed entry
+                upper[5] = 0.0;
+                lower[6] = -0.4; // a bounded one
+                upper[6] = 0.9;
+                let mut map = StateMap::new(n_b, &lower, &upper, norm, true).unwrap();
+                if case == "stretch" {
+                    map = map.with_stretch(&[3, 1]).unwrap();
+                }
+                (case, sk, map)
+            })
+            .collect()
+    }
+
     /// The `2n` sigma points `m ± √n L_i` of a factor `l` (column-major `n × n`).
     fn sigma_of(m: &[f64], l: &[f64]) -> Vec<f64> {
         let n = m.len();
@@ -773,26 +803,7 @@ mod tests {
     fn sigma_points_share_the_centres_markers_bit_for_bit() {
         let cams = rig();
         let norm = Normalization::default();
-        for (case, links) in [("tree", false), ("link matrix", true), ("stretch", false)] {
-            let mut sk = branching();
-            let n_b = sk.n_bones();
-            if links {
-                // every bone also turned by bone 0 and bone 2 turning bone 4
-                let mut lm = sk.bone_links();
-                lm[..n_b].iter_mut().for_each(|v| *v = true);
-                lm[2 * n_b + 4] = true;
-                sk = sk.with_links(&lm, None).unwrap();
-            }
-            let inf = f64::INFINITY;
-            let (mut lower, mut upper) = (vec![-inf; 3 * n_b], vec![inf; 3 * n_b]);
-            lower[5] = 0.0; // a fixed entry
-            upper[5] = 0.0;
-            lower[6] = -0.4; // a bounded one
-            upper[6] = 0.9;
-            let mut map = StateMap::new(n_b, &lower, &upper, &norm, true).unwrap();
-            if case == "stretch" {
-                map = map.with_stretch(&[3, 1]).unwrap();
-            }
+        for (case, sk, map) in sigma_cases(&norm) {
             let plan = SigmaPlan::new(&sk, &map);
             assert!(
                 plan.moving_fraction() < 0.8,

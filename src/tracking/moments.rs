@@ -175,9 +175,8 @@ fn finish(
 mod tests {
     use super::*;
     use crate::camera::Camera;
-    use crate::limits::StateMap;
+    use crate::emission::tests::sigma_cases;
     use crate::normalization::Normalization;
-    use crate::skeleton::tests::branching;
 
     /// The posterior SDs with the sigma plan equal those of every sigma point's full forward
     /// kinematics (summed in row order here), for a tree, a link matrix and elastic bones.
@@ -188,23 +187,7 @@ mod tests {
         ])
         .unwrap();
         let norm = Normalization::default();
-        for case in ["tree", "link matrix", "stretch"] {
-            let mut sk = branching();
-            let n_b = sk.n_bones();
-            if case == "link matrix" {
-                let mut lm = sk.bone_links();
-                lm[..n_b].iter_mut().for_each(|v| *v = true);
-                lm[2 * n_b + 4] = true;
-                sk = sk.with_links(&lm, None).unwrap();
-            }
-            let inf = f64::INFINITY;
-            let (mut lower, mut upper) = (vec![-inf; 3 * n_b], vec![inf; 3 * n_b]);
-            lower[6] = -0.4; // a bounded entry
-            upper[6] = 0.9;
-            let mut map = StateMap::new(n_b, &lower, &upper, &norm, true).unwrap();
-            if case == "stretch" {
-                map = map.with_stretch(&[3, 1]).unwrap();
-            }
+        for (case, sk, map) in sigma_cases(&norm) {
             let model = SkeletonEmission::new(sk, vec![cam.clone()], map, norm).unwrap();
             assert!(model.sigma_plan().is_some());
             let n = model.map.n_state();
