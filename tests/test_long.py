@@ -265,3 +265,65 @@ def test_row_percentiles_equal_numpys():
     a[5:9, 20:] = np.nan
     for q in (0, 37.5, 50, 90, 100):
         np.testing.assert_array_equal(nanpercentile_rows(a, q), np.nanpercentile(a, q, axis=1))
+
+
+class _ScriptedTracker:
+    """A stand-in for ``NativeTracker`` in ``_em_windows``: E-step ``k`` scores ``lls[k]``
+    (shared by the windows, so the sum is ``len(windows) × lls[k]``), the M-step's
+    parameters are numbered, and every E-step's parameters are recorded."""
+
+    def __init__(self, lls, n=2, n_x=4):
+        self.lls, self.n, self.n_x, self.n_frames = list(lls), n, n_x, 10
+        self.calls: list[tuple[float, bool]] = []  # (parameter number, statistics)
+
+    def e_step(self, mu0, v0, vz, vx, gate=None, smooth=True, statistics=True):
+        self.calls.append((float(mu0[0]), statistics))
+        k = sum(1 for _, s in self.calls if s) - 1
+        return {"log_likelihood": self.lls[min(k, len(self.lls) - 1)], "used": 1000,
+                "gated": 0, "invisible": 0, "gate_skipped_frames": 0,
+                "relinearized_frames": 0}  # fmt: skip
+
+    def m_step(self, mu0, v0, vz, vx):
+        nxt = float(mu0[0]) + 1.0
+        return {"mu0": np.full(self.n, nxt), "V0": np.eye(self.n), "Vz": np.eye(self.n),
+                "Vx_diag": np.ones(self.n_x)}  # fmt: skip
+
+    def mask(self):
+        return np.full((self.n_frames, self.n_x), L._USED, np.uint8)
+
+    def release_covariances(self):
+        pass
+
+
+def _scripted_em(lls, max_iter=40):
+    from concurrent.futures import ThreadPoolExecutor
+
+    trs = [_ScriptedTracker(lls), _ScriptedTracker(lls)]
+    init = (np.zeros(2), np.eye(2), np.eye(2), np.ones(4))
+    with ThreadPoolExecutor(2) as pool:
+        params, hist, conv = L._em_windows(
+            trs, [init, init], max_iter, 1e-3, None, pool, lambda *a: None
+        )
+    return trs, params, hist, conv
+
+
+def test_em_windows_stop_after_patience_and_return_the_best():
+    # the log-likelihood peaks at E-step 3 (parameters 2) and then stays below it
+    lls = [100.0, 200.0, 300.0] + [250.0 - k for k in range(30)]
+    trs, params, hist, conv = _scripted_em(lls)
+    assert not conv
+    assert len(hist) == 3 + L.EM_PATIENCE
+    assert hist[-1]["returned_iteration"] == 3 and hist[-1]["stalled"]
+    assert all(p[0][0] == 2.0 for p in params)  # the parameters E-step 3 evaluated
+    for tr in trs:  # one more E-step, under them, leaves their moments in the trackers
+        assert tr.calls[-1] == (2.0, False)
+
+
+def test_em_windows_keep_a_recovery_within_patience():
+    # a dip of patience - 1 iterations, then a new best and convergence: nothing is cut short
+    lls = [100.0, 300.0] + [290.0 - 5 * k for k in range(L.EM_PATIENCE - 1)] + [400.0, 400.1]
+    trs, params, hist, conv = _scripted_em(lls)
+    assert conv and "returned_iteration" not in hist[-1]
+    assert len(hist) == len(lls)  # the stop: two E-steps 0.2 nat apart (< 1e-3 × 2,000 used)
+    assert all(p[0][0] == len(hist) for p in params)  # the last M-step's parameters
+    assert all(s for tr in trs for _, s in tr.calls)  # no extra E-step

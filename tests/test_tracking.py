@@ -369,6 +369,26 @@ def test_em_returns_the_parameters_of_its_best_log_likelihood(tracked):
     assert k is None or 1 <= k <= len(lls)
 
 
+def test_em_says_when_patience_ended_it():
+    """Issue 26 item 4: a run that stopped because ``EM_PATIENCE`` E-steps stayed below the
+    best says so (and not that ``max_iter`` ended it), naming the returned iteration."""
+    from types import SimpleNamespace
+
+    from acm_rs.tracking.track import EM_PATIENCE, _warn_em
+
+    lls = [10.0, 20.0] + [19.0 - k for k in range(EM_PATIENCE)]
+    hist = [{"log_likelihood": v, "used": 100, "motion": "velocity"} for v in lls]
+    info = {"motion": "velocity", "interrupted": False, "converged": False, "stalled": True,
+            "returned_iteration": 2}  # fmt: skip
+    with pytest.warns(UserWarning) as rec:
+        _warn_em(SimpleNamespace(info=info, em_history=hist), max_iter=100, ll_tol=1e-3)
+    msgs = [str(w.message) for w in rec]
+    assert len(msgs) == 1, msgs
+    assert f"for {EM_PATIENCE} iterations" in msgs[0] and "iteration 2 are returned" in msgs[0]
+    assert "max_iter" not in msgs[0]
+    assert info["best_iteration"] == 2
+
+
 @pytest.mark.parametrize("outliers", [0.0, 0.05])
 def test_initial_vx_is_the_noise_of_the_detections(session, outliers):
     """V_x starts at the detections' noise (2 px), robust to confident outliers, and in

@@ -229,6 +229,7 @@ class NativeTracker:
         callback: Callable[[int, float, float, dict[str, int]], bool | None] | None = None,
         ll_tol: float | None = None,
         dof: float | None = None,
+        patience: int | None = 10,
     ) -> tuple[dict[str, F64], list[dict[str, float]], bool, bool]: ...
     def em_outcome(self) -> dict[str, Any] | None: ...
     def e_step(

@@ -18,8 +18,8 @@ pub(super) struct PyTracker {
     inner: Tracker<SkeletonEmission>,
     /// A private pool (`threads > 0`), e.g. 1 thread when windows run in parallel.
     pool: Option<rayon::ThreadPool>,
-    /// `(returned, final_stats)` of the last `run_em` (see `EmOutcome`).
-    last_em: Option<(Option<usize>, FilterStats)>,
+    /// `(returned, stalled, final_stats)` of the last `run_em` (see `EmOutcome`).
+    last_em: Option<(Option<usize>, bool, FilterStats)>,
 }
 
 /// Runs `f` inside a worker of `pool` if there is one, else of the global pool: the
@@ -196,7 +196,9 @@ impl PyTracker {
     /// called after every iteration with the GIL held and may return `False` to stop; Ctrl-C
     /// stops the run between iterations (the result is returned with `interrupted = True`).
     /// Returns `(params dict, history list of dicts, converged, interrupted)`.
-    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None, ll_tol=None, dof=None))]
+    /// `patience`: stop after this many E-steps in a row below the best log-likelihood
+    /// (`EmOptions::patience`; `None` or 0: run on).
+    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None, ll_tol=None, dof=None, patience=Some(crate::tracking::DEFAULT_PATIENCE)))]
     #[allow(clippy::too_many_arguments)]
     fn run_em<'py>(
         &mut self,
@@ -211,6 +213,7 @@ impl PyTracker {
         callback: Option<Py<PyAny>>,
         ll_tol: Option<f64>,
         dof: Option<f64>,
+        patience: Option<usize>,
     ) -> PyResult<EmReturn<'py>> {
         let init = self.params(&(mu0, v0, vz, vx))?;
         let opts = EmOptions {
@@ -219,6 +222,7 @@ impl PyTracker {
             gate,
             ll_tol,
             dof,
+            patience: patience.filter(|&p| p > 0),
         };
         let mut py_err: Option<PyErr> = None;
         let inner = &mut self.inner;
@@ -253,7 +257,7 @@ impl PyTracker {
             }
         }
         let outcome = res.map_err(to_py)?;
-        self.last_em = Some((outcome.returned, outcome.final_stats));
+        self.last_em = Some((outcome.returned, outcome.stalled, outcome.final_stats));
         let history = outcome
             .history
             .iter()
@@ -273,16 +277,18 @@ impl PyTracker {
         ))
     }
 
-    /// What the last `run_em` returned: `{"returned_iteration": k or None, "final": stats}`,
-    /// `k` the iteration whose E-step evaluated the returned parameters when they are an
-    /// earlier iterate of higher marginal log-likelihood than the last one (None: the last
-    /// M-step's), `final` the counts of the final E-step under them; None before any run.
+    /// What the last `run_em` returned: `{"returned_iteration": k or None, "stalled": bool,
+    /// "final": stats}`, `k` the iteration whose E-step evaluated the returned parameters when
+    /// they are an earlier iterate of higher marginal log-likelihood than the last one (None:
+    /// the last M-step's), `stalled` whether `patience` E-steps in a row below the best ended
+    /// the run, `final` the counts of the final E-step under them; None before any run.
     fn em_outcome<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyDict>>> {
-        let Some((returned, stats)) = &self.last_em else {
+        let Some((returned, stalled, stats)) = &self.last_em else {
             return Ok(None);
         };
         let d = PyDict::new(py);
         d.set_item("returned_iteration", *returned)?;
+        d.set_item("stalled", *stalled)?;
         d.set_item("final", stats_dict(py, stats)?)?;
         Ok(Some(d))
     }

@@ -103,6 +103,7 @@ fn em_increases_fit_and_converges_on_linear_model() {
         gate: None,
         ll_tol: None,
         dof: None,
+        patience: None,
     };
     let out = tr.run_em(p, &opts, |_| true).unwrap();
     assert!(out.converged, "{:?}", out.history.last());
@@ -223,6 +224,7 @@ fn student_t_weights_keep_outliers_out_of_the_noise_estimate() {
             gate: None,
             ll_tol: None,
             dof,
+            patience: None,
         };
         let out = tr.run_em(p.clone(), &opts, |_| true).unwrap();
         let vx = out.params.vx.iter().sum::<f64>() / n_x as f64;
@@ -866,10 +868,13 @@ fn em_returns_the_best_parameters_it_evaluated() {
         gate: Some(4.0),
         ll_tol: None,
         dof: None,
+        patience: None,
     };
     let mut tr = Tracker::new(em.clone(), x.clone()).unwrap();
-    let out = tr.run_em(p, &opts, |_| true).unwrap();
+    let out = tr.run_em(p.clone(), &opts, |_| true).unwrap();
     let ll: Vec<f64> = out.history.iter().map(|h| h.stats.log_lik).collect();
+    assert_eq!(ll.len(), 30);
+    assert!(!out.stalled);
     let (k, best) =
         ll.iter().enumerate().fold(
             (0, f64::NEG_INFINITY),
@@ -878,10 +883,29 @@ fn em_returns_the_best_parameters_it_evaluated() {
     assert!(ll[ll.len() - 1] < best - 1.0, "no fall to test: {ll:?}");
     assert_eq!(out.returned, Some(k + 1), "{ll:?}");
     assert_eq!(out.final_stats.log_lik, best);
-    let mut check = Tracker::new(em, x).unwrap();
+    let mut check = Tracker::new(em.clone(), x.clone()).unwrap();
     let s = check.e_step(&out.params, opts.gate).unwrap();
     assert_eq!(s.log_lik, best);
     assert_eq!(check.means(), tr.means());
+
+    // With patience 3 the same run stops after the three E-steps that follow the best one
+    // (none of them beats it), returns the best parameters and leaves their posterior.
+    let first_best = ll.iter().position(|&v| v == best).unwrap();
+    assert!(first_best + 3 < ll.len(), "{ll:?}");
+    let patient = EmOptions {
+        patience: Some(3),
+        ..opts
+    };
+    let mut tr3 = Tracker::new(em, x).unwrap();
+    let out3 = tr3.run_em(p, &patient, |_| true).unwrap();
+    assert!(out3.stalled && !out3.converged);
+    // the same path up to the stop (the same E-steps from the same start)
+    let ll3: Vec<f64> = out3.history.iter().map(|h| h.stats.log_lik).collect();
+    assert_eq!(ll3, ll[..first_best + 4].to_vec());
+    assert_eq!(out3.returned, Some(first_best + 1));
+    assert_eq!(out3.final_stats.log_lik, best);
+    assert_eq!(out3.params, out.params);
+    assert_eq!(tr3.means(), tr.means());
 }
 
 #[test]

@@ -63,6 +63,7 @@ from .track import (
     DEFAULT_LL_TOL,
     DEFAULT_MOTION,
     DEFAULT_NOISE,
+    EM_PATIENCE,
     MOTION_ORDER,
     _first_pose,
     _measurements,
@@ -147,7 +148,11 @@ def _em_windows(
     less than ``ll_tol`` nats per used entry. The trackers then hold the moments of the last
     iteration's E-step, under the parameters before its M-step (when EM converged, their
     log-likelihoods differ by less than the stop's tolerance; a final E-step under the
-    returned parameters cost 3-5 % of EM's time and is not run). ``release``: each window's
+    returned parameters cost 3-5 % of EM's time and is not run). As ``Tracker::run_em``, it
+    keeps the parameters of the highest summed log-likelihood: when the last iteration scored
+    lower than an earlier one by more than the tolerance, or ``EM_PATIENCE`` iterations in a
+    row stayed below the best (then it stops), the best parameters are returned, after one
+    E-step under them so that the trackers hold their moments. ``release``: each window's
     covariances are freed after its M-step (only its means are kept), so that EM holds the
     covariances of only the windows being worked on: EM's peak RSS 1.76 → 1.15 GB at the
     default 10 × 1,000 frames of the velocity state."""
@@ -163,8 +168,10 @@ def _em_windows(
             tr.release_covariances()
         return stats, new, (tr.mask() == _USED).sum(axis=0).ravel()
 
+    best: tuple[float, int, list[tuple]] | None = None  # (log-likelihood, iteration, params)
     for it in range(1, max_iter + 1):
         t0 = time.perf_counter()
+        evaluated = params
         done = list(pool.map(em_step, trackers, params))
         stats, new, counts = ([d[k] for d in done] for k in range(3))
         vz, vx = _combine(new, frames, counts, params[0][3])
@@ -179,11 +186,29 @@ def _em_windows(
             "iteration": it, "delta": delta, "seconds": seconds, **tot,
         })  # fmt: skip
         printer(it, delta, seconds, tot)
+        ll = float(tot["log_likelihood"])
+        if np.isfinite(ll) and (best is None or ll > best[0]):
+            best = (ll, it, evaluated)
         if len(history) > 1:
             gain = abs(history[-1]["log_likelihood"] - history[-2]["log_likelihood"])
             if gain < ll_tol * max(tot["used"], 1):
                 converged = True
                 break
+        if best is not None and it >= best[1] + EM_PATIENCE:
+            break
+    if best is not None and history:
+        last = history[-1]
+        stalled = best[1] + EM_PATIENCE <= last["iteration"] and not converged
+        if stalled or last["log_likelihood"] < best[0] - ll_tol * max(last["used"], 1):
+            params = best[2]
+
+            def redo(tr, p: tuple) -> None:
+                tr.e_step(*p, gate, smooth=True, statistics=False)
+                if release:
+                    tr.release_covariances()
+
+            list(pool.map(redo, trackers, params))
+            history[-1] = history[-1] | {"returned_iteration": best[1], "stalled": stalled}
     return params, history, converged
 
 

@@ -41,6 +41,11 @@ DEFAULT_LL_TOL = 1e-3
 #: optima on real motion, 1e-4 costs the synthetic rat's tail and coverage).
 DEFAULT_NOISE = 2e-4
 
+#: EM stops when this many E-steps in a row stay below its best marginal log-likelihood and
+#: returns the best parameters (``info["stalled"]``; the Rust core's ``DEFAULT_PATIENCE``,
+#: passed explicitly; docs/tracking.md, "What is guaranteed").
+EM_PATIENCE = 10
+
 #: Motion models and the order of their state (1: position, the paper's random walk;
 #: 2: position and velocity).
 MOTION_ORDER = {"random_walk": 1, "velocity": 2, "auto": 2}
@@ -482,7 +487,8 @@ def _warn_implausible_fit(result: PoseResult, fit_px: float, factor: float = 3.0
 
 
 def _warn_em(result: PoseResult, max_iter: int, ll_tol: float) -> None:
-    """Say when EM ended at ``max_iter`` without converging, and when its marginal
+    """Say when EM ended at ``max_iter`` without converging, when ``EM_PATIENCE`` iterations
+    in a row stayed below its best log-likelihood, and when its marginal
     log-likelihood fell well below its best iteration (the unscented E-step and the outlier
     gate do not guarantee a monotone rise; ``docs/tracking.md``). The parameters returned are
     those of the highest log-likelihood evaluated (``info["returned_iteration"]``)."""
@@ -496,6 +502,15 @@ def _warn_em(result: PoseResult, max_iter: int, ll_tol: float) -> None:
     ll = np.array([h["log_likelihood"] for h in hist], dtype=float)
     best = int(np.nanargmax(ll)) if np.isfinite(ll).any() else len(ll) - 1
     info["best_iteration"] = best + 1
+    if info.get("stalled"):
+        warnings.warn(
+            f"EM stopped after {len(hist)} iterations of the {name} model: its marginal "
+            f"log-likelihood stayed below its best ({ll[best]:.6g}, iteration {best + 1}) for "
+            f"{EM_PATIENCE} iterations (last {ll[-1]:.6g}); the parameters of iteration "
+            f"{info.get('returned_iteration')} are returned; check result.em_history",
+            stacklevel=4,
+        )
+        return
     if not info["converged"]:
         warnings.warn(
             f"EM stopped at max_iter={max_iter} without converging ({len(hist)} iterations of "
@@ -728,7 +743,7 @@ def track_in_memory(
         return native.run_em(
             *init, int(max_iter), float(tol), gate_threshold(gate), _Printer(progress),
             float(ll_tol) if stop == "loglik" else None,
-            float(dof) if noise_model == "student" else None,
+            float(dof) if noise_model == "student" else None, EM_PATIENCE,
         )  # fmt: skip
 
     native = make_tracker(1)
@@ -858,6 +873,7 @@ def track_in_memory(
             "first_frame": f0, "mu0_init": mu0, "joint_limits": bool(joint_limits),
             "vx_init_px": np.sqrt(vx0[:2]) * np.asarray(norm.pixel, dtype=float),
             "returned_iteration": outcome["returned_iteration"],
+            "stalled": bool(outcome.get("stalled", False)),
             "log_likelihood": float(outcome["final"]["log_likelihood"]),
             "check_fit_px": fit_px,
             "normalization": _norm_dict(norm),
