@@ -100,6 +100,7 @@ fn stats_dict<'py>(py: Python<'py>, s: &FilterStats) -> PyResult<Bound<'py, PyDi
     d.set_item("invisible", s.invisible)?;
     d.set_item("gate_skipped_frames", s.gate_skipped_frames)?;
     d.set_item("relinearized_frames", s.relinearized_frames)?;
+    d.set_item("relinearizations", s.relinearizations)?;
     d.set_item("log_likelihood", s.log_lik)?;
     Ok(d)
 }

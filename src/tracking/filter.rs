@@ -58,6 +58,9 @@ pub struct FilterStats {
     pub log_lik: f64,
     /// Frames whose update was relinearised about the posterior (see `relinearize`).
     pub relinearized_frames: usize,
+    /// Linearisations beyond each frame's first, over all frames (the iterations of the
+    /// relinearised frames; each costs about one update).
+    pub relinearizations: usize,
 }
 
 /// Scratch buffers of the filter. Sized on the first frame; a frame whose update holds
@@ -96,6 +99,9 @@ pub(crate) struct Workspace {
     u: Vec<f64>,
     b: Vec<f64>,
     up: Update,
+    /// Linearisations of the current frame beyond its first (moved into
+    /// [`FilterStats::relinearizations`] at the frame's end).
+    relin_steps: usize,
     /// Everything on the calling thread (no hand-off to rayon's pool; see
     /// [`Emission::eval_batch_serial`]).
     pub(crate) serial: bool,
@@ -128,6 +134,7 @@ impl Workspace {
             u: Vec::new(),
             b: Vec::new(),
             up: Update::default(),
+            relin_steps: 0,
             serial: false,
         }
     }
@@ -434,6 +441,7 @@ pub(crate) fn step<E: Emission + ?Sized>(
                 ws,
             )? {
                 stats.relinearized_frames += 1;
+                stats.relinearizations += std::mem::take(&mut ws.relin_steps);
                 finish(&better, &ws.used, &ws.vx_eff, stats, mu_out, v_out);
                 ws.up = better;
                 return Ok(());
@@ -547,6 +555,7 @@ fn hinted_update<E: Emission + ?Sized>(
         ws.used = before;
         return Ok(None);
     };
+    ws.relin_steps += 1;
     let first = fresh_update(mbar, l_full, n, &nu, frame, ws)?;
     let up = relinearized(
         em,
@@ -573,6 +582,7 @@ fn hinted_update<E: Emission + ?Sized>(
     stats.invisible = stats.invisible + (measured - ws.used.len()) - was_invisible;
     stats.used += ws.used.len();
     stats.relinearized_frames += 1;
+    stats.relinearizations += std::mem::take(&mut ws.relin_steps);
     Ok(Some(up))
 }
 
@@ -917,6 +927,7 @@ fn relinearized<E: Emission + ?Sized>(
         else {
             break;
         };
+        ws.relin_steps += 1;
         best = Some(fresh_update(mbar, l_full, n, &nu, frame, ws)?);
     }
     Ok(best)

@@ -418,11 +418,17 @@ fn relinearisation_recovers_from_a_broad_prior() {
         (
             ((m[0] - truth[0]).powi(2) + (m[1] - truth[1]).powi(2)).sqrt(),
             stats.relinearized_frames,
+            stats.relinearizations,
         )
     };
-    let (plain, n0) = err(0);
-    let (iterated, n1) = err(10);
-    assert_eq!((n0, n1), (0, 1));
+    let (plain, n0, k0) = err(0);
+    let (iterated, n1, k1) = err(10);
+    let (_, n2, k2) = err(1);
+    assert_eq!((n0, n1, n2), (0, 1, 1));
+    // the iterations are counted: none without relinearisation, at most `relinearize`, and
+    // this broad prior needs more than one
+    assert_eq!((k0, k2), (0, 1));
+    assert!((2..=10).contains(&k1), "{k1} relinearisations");
     assert!(plain > 0.1, "the single update is off: {plain}");
     assert!(
         iterated < 0.01,
