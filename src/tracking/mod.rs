@@ -238,8 +238,10 @@ pub enum FrameParallelism {
 /// Frames per mode of each timing trial of [`FrameParallelism::Auto`].
 pub const MODE_TRIAL: usize = 16;
 /// Frames between two timing trials of [`FrameParallelism::Auto`] (the load of the machine
-/// may change during a long recording).
-pub const MODE_PERIOD: usize = 4096;
+/// may change during a long recording: the streaming smoother's first trial of each segment
+/// falls while the previous one is spilled on the other core; 512 instead of 4,096 ran its
+/// velocity forward pass 3-7 % faster, docs/tracking.md).
+pub const MODE_PERIOD: usize = 512;
 /// Frames of each period before its trial (the first frames of a recording relinearise from
 /// the broad prior and are not typical).
 const MODE_SKIP: usize = 48;
