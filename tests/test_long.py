@@ -327,3 +327,24 @@ def test_em_windows_keep_a_recovery_within_patience():
     assert len(hist) == len(lls)  # the stop: two E-steps 0.2 nat apart (< 1e-3 × 2,000 used)
     assert all(p[0][0] == len(hist) for p in params)  # the last M-step's parameters
     assert all(s for tr in trs for _, s in tr.calls)  # no extra E-step
+
+
+def test_windows_em_says_how_it_ended():
+    # a stall, max_iter, and convergence (silent); only the model used counts
+    lls = [100.0, 200.0, 300.0] + [250.0 - k for k in range(30)]
+    _, _, hist, conv = _scripted_em(lls)
+    hist = [{"motion": "random_walk", "iteration": 1}] + [h | {"motion": "velocity"} for h in hist]
+    with pytest.warns(UserWarning) as rec:
+        L._warn_windows_em(hist, "velocity", conv, 100)
+    (msg,) = [str(w.message) for w in rec]
+    assert f"after {3 + L.EM_PATIENCE} iterations of the velocity model" in msg
+    assert f"below its best for {L.EM_PATIENCE} iterations" in msg
+    assert "iteration 3 (its best" in msg
+    rising = [100.0 * k for k in range(1, 40)]
+    _, _, hist, conv = _scripted_em(rising, max_iter=6)
+    assert not conv
+    with pytest.warns(UserWarning, match="max_iter=6 without converging; the last parameters"):
+        L._warn_windows_em(hist, "random_walk", conv, 6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        L._warn_windows_em(hist, "random_walk", True, 6)

@@ -212,6 +212,32 @@ def _em_windows(
     return params, history, converged
 
 
+def _warn_windows_em(history: list[dict], motion: str, converged: bool, max_iter: int) -> None:
+    """Say how the windows' EM of the model used ended when it did not converge (as
+    ``track``'s ``_warn_em``): after ``EM_PATIENCE`` iterations below its best, or at
+    ``max_iter``, and which iteration's parameters were returned."""
+    hist = [h for h in history if h.get("motion", motion) == motion]
+    if converged or not hist:
+        return
+    name = motion.replace("_", " ")
+    last = hist[-1]
+    kept = last.get("returned_iteration")
+    which = (
+        f"the parameters of iteration {kept} (its best summed log-likelihood) are returned"
+        if kept is not None
+        else "the last parameters are returned"
+    )
+    if last.get("stalled"):
+        why = f"its summed log-likelihood stayed below its best for {EM_PATIENCE} iterations"
+    else:
+        why = f"it reached max_iter={max_iter} without converging"
+    warnings.warn(
+        f"EM over the windows stopped after {len(hist)} iterations of the {name} "
+        f"model: {why}; {which}; check the fit's history",
+        stacklevel=3,
+    )
+
+
 @dataclass
 class SubsetFit:
     """Θ learned by :func:`learn_windows`."""
@@ -385,6 +411,7 @@ def learn_windows(
             "rw_prior_cov": _window_prior_cov(rw_params, [], n, 1),
         }  # fmt: skip
     extra |= {"window_fit_px": fit_px, "dropped_windows": dropped, "typical_px": typical_px}
+    _warn_windows_em(history, used, converged, max_iter)
     return SubsetFit(
         params=out, motion=used, motion_note=note, history=history, converged=converged,
         windows=list(windows), prior_cov=prior, seconds=time.perf_counter() - t_start,
