@@ -180,6 +180,23 @@ impl Team {
     }
 }
 
+impl Team {
+    /// [`Self::run`] of two tasks, each with one of two disjoint parts of an output (e.g. the
+    /// two column blocks of a product): `f(i, parts[i])`.
+    pub fn run_pair(
+        &self,
+        threads: usize,
+        parts: [&mut [f64]; 2],
+        f: &(dyn Fn(usize, &mut [f64]) + Sync),
+    ) {
+        let parts = parts.map(Mutex::new);
+        self.run(2, threads, &|i| {
+            let mut part = parts[i].lock().unwrap_or_else(|e| e.into_inner());
+            f(i, &mut part);
+        });
+    }
+}
+
 /// Runs tasks of the current region until none is left.
 fn take_tasks(s: &Shared, f: &(dyn Fn(usize) + Sync)) {
     let tasks = s.tasks.load(Ordering::Relaxed);
@@ -260,6 +277,19 @@ mod tests {
             });
         }
         assert_eq!(sum.load(Ordering::Relaxed), 200 * 15);
+    }
+
+    #[test]
+    fn a_pair_gets_its_own_part() {
+        let team = Team::new(1);
+        for threads in [1usize, 2] {
+            let mut out = vec![0.0; 7];
+            let (a, b) = out.split_at_mut(3);
+            team.run_pair(threads, [a, b], &|i, part| {
+                part.iter_mut().for_each(|v| *v += (i + 1) as f64);
+            });
+            assert_eq!(out, [1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 2.0]);
+        }
     }
 
     #[test]

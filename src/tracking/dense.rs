@@ -13,7 +13,6 @@ use crate::kernels::{
 };
 use crate::team::Team;
 use nalgebra::{DMatrix, DVector};
-use std::sync::Mutex;
 
 /// Relative jitter levels tried when a covariance is not numerically positive definite
 /// (multiples of the mean diagonal entry).
@@ -140,12 +139,9 @@ pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64], parallel: 
     if parallel && rows * rows * k > 200_000 {
         // on the spinning team (see `crate::team`: rayon's wake-ups cost more than a region
         // of ~40 µs gains)
-        let halves = [Mutex::new(c0), Mutex::new(c1)];
         let ranges = [0..split, split..rows];
-        let threads = rayon::current_num_threads();
-        Team::global().run(2, threads, &|i| {
-            let mut c = halves[i].lock().unwrap_or_else(|e| e.into_inner());
-            syrk_rows_lower(a, rows, k, ranges[i].clone(), &mut c);
+        Team::global().run_pair(rayon::current_num_threads(), [c0, c1], &|i, c| {
+            syrk_rows_lower(a, rows, k, ranges[i].clone(), c);
         });
     } else {
         syrk_rows_lower(a, rows, k, 0..split, c0);

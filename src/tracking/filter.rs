@@ -27,7 +27,6 @@ use crate::error::Result;
 use crate::kernels::{cholesky_in_place, dot, lower_solve_in_place, lower_tr_solve_in_place};
 use crate::team::Team;
 use nalgebra::{DMatrix, DVector};
-use std::sync::Mutex;
 
 /// Status of one measurement entry in one frame, as used by the last E-step.
 pub mod status {
@@ -690,10 +689,8 @@ fn linear_update(
     if parallel && n * n * ns > 400_000 {
         let (u0, u1) = u.split_at_mut(ns / 2 * n);
         let l22: &[f64] = b;
-        let halves = [Mutex::new(u0), Mutex::new(u1)];
-        Team::global().run(2, rayon::current_num_threads(), &|i| {
-            let mut h = halves[i].lock().unwrap_or_else(|e| e.into_inner());
-            lower_solve_in_place(l22, n, &mut h);
+        Team::global().run_pair(rayon::current_num_threads(), [u0, u1], &|_, h| {
+            lower_solve_in_place(l22, n, h);
         });
     } else {
         lower_solve_in_place(b, n, u);
