@@ -56,7 +56,7 @@ def test_windows_share_vz_and_vx(case):
     assert fit.history and fit.history[-1]["used"] > 0
 
 
-def test_windows_learn_the_velocity_state(case):
+def test_windows_learn_the_velocity_state(case, monkeypatch):
     # the velocity EM on windows after the random walk's (whose trackers are released once
     # the velocity trackers hold their hints): the position-velocity Θ, the random walk's Θ
     # and window prior for the hints, and the typical error from the random walk's means
@@ -74,6 +74,15 @@ def test_windows_learn_the_velocity_state(case):
     assert [h["motion"] for h in fit.history].count("velocity") >= 1
     # a typical frame of the smoothed random walk reprojects within a few pixels (2 px noise)
     assert 0.5 < fit.extra["typical_px"] < 10.0
+    # the velocity windows' released covariances go to a buffer pool that the next E-step
+    # takes them from: a pool that keeps nothing (fresh vectors) must give the same Θ
+    real = L._native.NativeBufferPool
+    monkeypatch.setattr(L._native, "NativeBufferPool", lambda n: real(0))
+    fresh = L.learn_windows(case["rig"], case["sk"], dets, m.norm, motion="velocity",
+                            windows=wins, max_iter=30)  # fmt: skip
+    assert len(fresh.history) == len(fit.history)
+    for k in ("mu0", "V0", "Vz", "Vx_diag"):
+        np.testing.assert_array_equal(fresh.params[k], fit.params[k], err_msg=k)
 
 
 def test_windows_covering_the_recording_reproduce_it_exactly(case, tmp_path):

@@ -230,3 +230,48 @@ def test_memory_mapped_input_pages_are_released(tmp_path):
         assert win.shape == (4, 1000, 64, 2)
         assert win[0, 0, 0, 0] == a and win[3, -1, 63, 1] == a + 999
     assert _mapped_kb(tmp_path / "d.npy") < 4 * 1024  # of 40,960 kB read
+
+
+@pytest.mark.parametrize("spill", [True, False])
+def test_recycled_buffers_change_nothing(case, tmp_path, monkeypatch, spill):
+    # the run's trackers hand their covariances on (src/tracking/buffers.rs): later segments
+    # filter and smooth in vectors that held an earlier segment's moments, and must give
+    # the numbers of fresh vectors bit for bit
+    a = _stream(case, tmp_path / "a.h5", segment=100, poor_fit=None, spill=spill)
+    monkeypatch.setattr(S, "BUFFERS", 0)  # a pool that keeps nothing: every vector fresh
+    b = _stream(case, tmp_path / "b.h5", segment=100, poor_fit=None, spill=spill)
+    assert a["n_segments"] == b["n_segments"] == 5
+    ra, rb = (acm_rs.read_chunked(tmp_path / f) for f in ("a.h5", "b.h5"))
+    for k in ("joints", "joints_std", "markers", "markers_std", "t", "r", "status"):
+        np.testing.assert_array_equal(ra[k], rb[k], err_msg=k)
+
+
+def test_a_dropped_tracker_gives_its_covariances_to_the_next(case):
+    from dataclasses import replace
+
+    from acm_rs import _native
+    from acm_rs.tracking import windows as W
+
+    pool = _native.NativeBufferPool(2)
+    model = replace(case["model"], buffers=pool)
+    p = model.params
+    det = model.detections(case["det"][:, :200], case["lik"][:, :200])
+    x, mu0 = W._normalized(model.norm, det), W._window_prior(model, det)
+
+    def moments(m):
+        native = m.tracker(x)
+        native.e_step(mu0, model.prior_cov, p["Vz"], p["Vx_diag"], model.gate)
+        return native, native.means().copy(), native.covs().copy()
+
+    first, m1, c1 = moments(model)
+    assert len(pool) == 0  # (its vector is in use)
+    del first
+    assert len(pool) == 1
+    second, m2, c2 = moments(model)  # in the first one's vector
+    assert len(pool) == 0
+    _, m3, c3 = moments(case["model"])  # no pool
+    np.testing.assert_array_equal(m2, m3)
+    np.testing.assert_array_equal(c2, c3)
+    np.testing.assert_array_equal(c1, c3)
+    del second
+    assert len(pool) == 1

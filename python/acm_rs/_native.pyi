@@ -196,6 +196,12 @@ class NativeCalibration:
     def residuals(self, x: F64) -> tuple[F64, int]: ...
     def jacobian_data(self, x: F64) -> F64: ...
 
+class NativeBufferPool:
+    """Covariance buffers handed from dropped trackers to new ones (src/tracking/buffers.rs)."""
+
+    def __init__(self, max_buffers: int = 4) -> None: ...
+    def __len__(self) -> int: ...
+
 class NativeTracker:
     """UKF / unscented RTS smoother / EM of ACM supp. sec. 4 (see src/tracking/)."""
 
@@ -212,6 +218,7 @@ class NativeTracker:
         order: int = 1,
         threads: int = 0,
         stretch: I64 | None = None,
+        buffers: NativeBufferPool | None = None,
     ) -> None: ...
     @property
     def n_state(self) -> int: ...

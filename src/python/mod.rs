@@ -714,6 +714,7 @@ fn native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyStateMap>()?;
     m.add_class::<learning::PyLearning>()?;
     m.add_class::<tracking::PyTracker>()?;
+    m.add_class::<tracking::PyBufferPool>()?;
     m.add_class::<tracking::PyOnlineTracker>()?;
     m.add_function(wrap_pyfunction!(tracking::smooth_bundle, m)?)?;
     m.add_class::<calibration::PyCalibration>()?;

@@ -5,14 +5,38 @@ use super::error::to_py;
 use super::{alloc, cameras_from, norm_from, out, view, Arr, IArr, Out, PySkeleton};
 use crate::limits::StateMap;
 use crate::tracking::{
-    moments, EmOptions, FilterStats, OnlineTracker, Params, SkeletonEmission, Tracker,
-    DEFAULT_RELINEARIZE,
+    buffers::BufferPool, moments, EmOptions, FilterStats, OnlineTracker, Params, SkeletonEmission,
+    Tracker, DEFAULT_RELINEARIZE,
 };
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
+use std::sync::Arc;
 
 /// The tracker of one recording (skeleton emission, measurements, last posterior).
+/// Large buffers handed from dropped trackers to new ones (`tracking::buffers`): give one
+/// pool to the trackers of a run that builds many in turn (the streaming smoother).
+#[pyclass(name = "NativeBufferPool", module = "acm_rs._native", frozen)]
+pub(super) struct PyBufferPool {
+    inner: Arc<BufferPool>,
+}
+
+#[pymethods]
+impl PyBufferPool {
+    /// A pool keeping at most `max_buffers` vectors.
+    #[new]
+    #[pyo3(signature = (max_buffers=4))]
+    fn new(max_buffers: usize) -> Self {
+        Self {
+            inner: Arc::new(BufferPool::new(max_buffers)),
+        }
+    }
+    /// Number of vectors kept now.
+    fn __len__(&self) -> usize {
+        self.inner.len()
+    }
+}
+
 #[pyclass(name = "NativeTracker", module = "acm_rs._native")]
 pub(super) struct PyTracker {
     inner: Tracker<SkeletonEmission>,
@@ -127,7 +151,9 @@ impl PyTracker {
     /// global pool), e.g. 1 when several trackers run in parallel.
     /// `stretch`: elastic bones whose log-stretch follows the pose entries in the state
     /// (memoryless transition; issue 28).
-    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x, relinearize=DEFAULT_RELINEARIZE, order=1, threads=0, stretch=None))]
+    /// `buffers`: a `NativeBufferPool` shared by the trackers of one run, from which this
+    /// tracker takes its covariances and to which it gives them back when dropped.
+    #[pyo3(signature = (skeleton, params, lower, upper, norm, joint_limits, x, relinearize=DEFAULT_RELINEARIZE, order=1, threads=0, stretch=None, buffers=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         skeleton: &PySkeleton,
@@ -141,6 +167,7 @@ impl PyTracker {
         order: usize,
         threads: usize,
         stretch: Option<IArr<'_>>,
+        buffers: Option<PyRef<'_, PyBufferPool>>,
     ) -> PyResult<Self> {
         let bones = bone_list(stretch.as_ref())?;
         let em = emission_from(
@@ -161,6 +188,9 @@ impl PyTracker {
         let xs = view(&x, "x", &shape)?.to_vec();
         let mut inner = Tracker::new(em, xs).map_err(to_py)?;
         inner.set_relinearize(relinearize);
+        if let Some(b) = buffers {
+            inner.set_buffer_pool(Arc::clone(&b.inner));
+        }
         inner.set_order(order).map_err(to_py)?;
         let pool = if threads > 0 {
             let p = rayon::ThreadPoolBuilder::new()

@@ -15,6 +15,7 @@
 //! Memory: the E-step keeps `(T+1)` means and covariances (`8 n² (T+1)` bytes: 2 GB for the
 //! rat's `n = 50` and `T = 10⁵`) and one status byte per measurement entry.
 
+pub mod buffers;
 pub mod bundle;
 pub mod dense;
 pub mod filter;
@@ -27,10 +28,12 @@ pub mod smoother;
 mod tests;
 
 use crate::error::{ensure_len, AcmError, Result};
+use buffers::BufferPool;
 pub use filter::{status, FilterStats};
 pub use model::{Emission, LinearEmission, SkeletonEmission};
 pub use mstep::relative_change;
 pub use online::OnlineTracker;
+use std::sync::Arc;
 use std::time::Instant;
 
 /// Model parameters `Θ = {μ0, V0, V_z, V_x}` (sec. 4.1); `V_x` is diagonal.
@@ -214,6 +217,17 @@ pub struct Tracker<E: Emission> {
     filtered_only: bool,
     /// How each filter step uses the pool's threads.
     frame_parallelism: FrameParallelism,
+    /// Where the covariances come from and go back to (None: allocated and freed).
+    buffers: Option<Arc<BufferPool>>,
+}
+
+impl<E: Emission> Drop for Tracker<E> {
+    fn drop(&mut self) {
+        if let Some(pool) = &self.buffers {
+            pool.give(std::mem::take(&mut self.covs));
+            pool.give(std::mem::take(&mut self.zcovs));
+        }
+    }
 }
 
 /// How a filter step uses the threads of the rayon pool ([`Tracker::set_frame_parallelism`]).
@@ -354,7 +368,32 @@ impl<E: Emission> Tracker<E> {
             has_statistics: false,
             filtered_only: false,
             frame_parallelism: FrameParallelism::Auto,
+            buffers: None,
         })
+    }
+
+    /// Takes the covariances' vectors from `pool` from now on and gives them back when they
+    /// are replaced or the tracker is dropped (the streaming smoother's trackers of one run
+    /// share one pool: [`buffers`]). The moments do not depend on it.
+    pub fn set_buffer_pool(&mut self, pool: Arc<BufferPool>) {
+        let len = self.covs.len();
+        // (the vector of `new` was never written: freeing it costs no page faults)
+        self.covs = pool.zeros(len);
+        self.buffers = Some(pool);
+    }
+
+    /// `len` zeros from the buffer pool, if any, giving `old` back to it.
+    fn fresh(&self, old: Vec<f64>, len: usize) -> Vec<f64> {
+        match &self.buffers {
+            Some(pool) => {
+                pool.give(old);
+                pool.zeros(len)
+            }
+            None => {
+                drop(old);
+                vec![0.0; len]
+            }
+        }
     }
 
     /// The emission model.
@@ -411,7 +450,8 @@ impl<E: Emission> Tracker<E> {
         let ns = order * self.em.n_state();
         self.order = order;
         self.means = vec![0.0; (self.n_frames + 1) * ns];
-        self.covs = vec![0.0; (self.n_frames + 1) * ns * ns];
+        let old = std::mem::take(&mut self.covs);
+        self.covs = self.fresh(old, (self.n_frames + 1) * ns * ns);
         Ok(())
     }
 
@@ -423,8 +463,14 @@ impl<E: Emission> Tracker<E> {
     /// that need them ([`Self::m_step`], [`Self::state_row`], [`Self::smooth_filtered`],
     /// [`Self::filtered_packed`]) return an error.
     pub fn release_covariances(&mut self) {
-        self.covs = Vec::new();
-        self.zcovs = Vec::new();
+        let (covs, zcovs) = (
+            std::mem::take(&mut self.covs),
+            std::mem::take(&mut self.zcovs),
+        );
+        if let Some(pool) = &self.buffers {
+            pool.give(covs);
+            pool.give(zcovs);
+        }
         self.has_statistics = false;
         self.filtered_only = false;
     }
@@ -472,7 +518,10 @@ impl<E: Emission> Tracker<E> {
         let ns = self.order * n;
         let steps = self.n_frames + 1;
         self.zmeans.resize(steps * n, 0.0);
-        self.zcovs.resize(steps * n * n, 0.0);
+        if self.zcovs.len() != steps * n * n {
+            let old = std::mem::take(&mut self.zcovs);
+            self.zcovs = self.fresh(old, steps * n * n);
+        }
         for k in 0..steps {
             self.zmeans[k * n..(k + 1) * n].copy_from_slice(&self.means[k * ns..k * ns + n]);
             for c in 0..n {
@@ -530,7 +579,7 @@ impl<E: Emission> Tracker<E> {
         let size = (self.n_frames + 1) * n * n;
         if self.covs.len() != size {
             // after release_covariances
-            self.covs = vec![0.0; size];
+            self.covs = self.fresh(Vec::new(), size);
         }
         self.means[..n].copy_from_slice(&params.mu0);
         self.covs[..n * n].copy_from_slice(&params.v0);
@@ -700,7 +749,7 @@ impl<E: Emission> Tracker<E> {
         self.means.copy_from_slice(means);
         if self.covs.len() != steps * ns * ns {
             // after release_covariances
-            self.covs = vec![0.0; steps * ns * ns];
+            self.covs = self.fresh(Vec::new(), steps * ns * ns);
         }
         for (cov, src) in self
             .covs

@@ -72,6 +72,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import _native
 from .._version import __version__
 from ..state import StateMap
 from .track import _on_terminal
@@ -88,6 +89,9 @@ from .windows import (
 
 #: Frames per segment of the streaming smoother.
 DEFAULT_SEGMENT = 2000
+#: Covariance buffers a run keeps for its next trackers (a segment's whole-state and position
+#: covariances, for the one being filtered and the one being checked or written).
+BUFFERS = 4
 #: A poorly fit stretch has at least this many consecutive frames ...
 POOR_FRAMES = 10
 #: ... whose reprojection error (px, :func:`frame_px`) is this multiple of a typical frame's.
@@ -404,6 +408,10 @@ def smooth_streaming(
     n = sm.n_state
     ns = n * model.order
     n_meas = 2 * len(model.rig) * model.skeleton.n_markers
+    # the trackers of this run hand their covariances on instead of each taking fresh pages
+    # from the kernel (1.5 million page faults per 20,000 velocity frames, on the filter's
+    # critical path; src/tracking/buffers.rs)
+    model = replace(model, buffers=_native.NativeBufferPool(BUFFERS))
     need = spill_bytes(T, ns, n_meas, -(-T // segment))
     show = _on_terminal(progress)
     out = Path(out)

@@ -17,7 +17,7 @@ import mmap
 import os
 import tempfile
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,9 @@ class _Model:
 
     #: Threads of each window's tracker (1: windows run in parallel instead).
     threads: int = 1
+    #: A ``NativeBufferPool`` the trackers take their covariances from and give them back
+    #: to (the streaming smoother's; None: allocated and freed, and the model picklable).
+    buffers: object | None = field(default=None, repr=False, compare=False)
 
     def tracker(self, x: np.ndarray, order: int | None = None):
         lim = self.skeleton.joint_limits
@@ -63,7 +66,7 @@ class _Model:
             self.skeleton._native, self.rig.get_params(), np.ascontiguousarray(lim[..., 0]),
             np.ascontiguousarray(lim[..., 1]), self.norm._tuple(), bool(self.joint_limits),
             np.ascontiguousarray(x), relinearize=int(self.relinearize), order=order or self.order,
-            threads=int(self.threads),
+            threads=int(self.threads), buffers=self.buffers,
         )  # fmt: skip
 
     def detections(self, det: np.ndarray, lik: np.ndarray | None) -> np.ndarray:
