@@ -389,14 +389,19 @@ impl PyTracker {
     /// `(means (T+1, ns), packed (T+1, ns (ns + 1) / 2))`, the covariances' lower triangles
     /// column by column (`Tracker::filtered_packed`).
     fn filtered_packed<'py>(&self, py: Python<'py>) -> PyResult<(Out<'py>, Out<'py>)> {
-        let (m, packed) = self.inner.filtered_packed().map_err(to_py)?;
         let steps = self.inner.n_frames() + 1;
         let ns = self.inner.n_state();
-        let tri = packed.len() / steps;
-        Ok((
-            out(py, m.to_vec(), &[steps, ns])?,
-            out(py, packed, &[steps, tri])?,
-        ))
+        // written straight into numpy's array (its allocator takes huge pages for large
+        // arrays: ~40 kB a frame of the velocity state, written once and saved)
+        let packed = alloc(py, &[steps, ns * (ns + 1) / 2]);
+        let m = {
+            let mut w = packed.readwrite();
+            let dst = w.as_slice_mut().expect("contiguous");
+            let inner = &self.inner;
+            py.detach(|| inner.filtered_packed_into(dst).map(<[f64]>::to_vec))
+                .map_err(to_py)?
+        };
+        Ok((out(py, m, &[steps, ns])?, packed))
     }
 
     /// Restores a filter pass saved by `filtered_packed()` and `mask()` (e.g. from a spill

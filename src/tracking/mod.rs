@@ -699,6 +699,18 @@ impl<E: Emission> Tracker<E> {
     /// # Errors
     /// Invalid if the last pass was not a filter.
     pub fn filtered_packed(&self) -> Result<(&[f64], Vec<f64>)> {
+        let ns = self.n_state();
+        let mut packed = vec![0.0; (self.n_frames + 1) * ns * (ns + 1) / 2];
+        let means = self.filtered_packed_into(&mut packed)?;
+        Ok((means, packed))
+    }
+
+    /// [`Self::filtered_packed`] into `dst` (`(T+1) · ns (ns + 1) / 2` values, e.g. an array
+    /// of the caller's that is written to disk next); returns the means.
+    ///
+    /// # Errors
+    /// Invalid if the last pass was not a filter; shape error for `dst`.
+    pub fn filtered_packed_into(&self, dst: &mut [f64]) -> Result<&[f64]> {
         if !self.filtered_only {
             return Err(AcmError::Invalid(
                 "filtered_packed needs the moments of a filter pass (run filter first)".into(),
@@ -706,8 +718,12 @@ impl<E: Emission> Tracker<E> {
         }
         let ns = self.n_state();
         let tri = ns * (ns + 1) / 2;
-        let mut packed = vec![0.0; (self.n_frames + 1) * tri];
-        for (dst, cov) in packed
+        ensure_len(
+            dst.len(),
+            (self.n_frames + 1) * tri,
+            "packed filtered covariances (T+1, ns(ns+1)/2)",
+        )?;
+        for (dst, cov) in dst
             .chunks_exact_mut(tri)
             .zip(self.covs.chunks_exact(ns * ns))
         {
@@ -717,7 +733,7 @@ impl<E: Emission> Tracker<E> {
                 e += ns - c;
             }
         }
-        Ok((&self.means, packed))
+        Ok(&self.means)
     }
 
     /// Restores the moments and entry statuses of a filter pass saved by
