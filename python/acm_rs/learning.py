@@ -1049,6 +1049,11 @@ def _fit_frames(
     rng = np.random.default_rng(seed)
     sub = problem(lab_fcm[bad])
     limited = np.isfinite(lo_z) & np.isfinite(hi_z)
+    if not limited.any():
+        # nothing to redraw: every start would be the same continuation of the fit, so one
+        # gives the result of all (12 identical 50-iteration fits cost 0.25 s per track call
+        # of a skeleton without joint limits)
+        starts = min(starts, 1)
     lo_f, hi_f = np.where(limited, lo_z, 0.0), np.where(limited, hi_z, 0.0)
     mid, half = 0.5 * (lo_f + hi_f), 0.5 * (hi_f - lo_f)
     best, best_rms = z[bad].copy(), rms[bad].copy()
