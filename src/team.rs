@@ -178,9 +178,7 @@ impl Team {
             panic!("a task of a parallel region panicked on a team thread");
         }
     }
-}
 
-impl Team {
     /// [`Self::run`] of two tasks, each with one of two disjoint parts of an output (e.g. the
     /// two column blocks of a product): `f(i, parts[i])`.
     pub fn run_pair(
