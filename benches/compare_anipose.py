@@ -338,8 +338,9 @@ def _track(case: Case, **kwargs) -> tuple[acm_rs.PoseResult, float, list[str]]:
     return res, wall, [str(w.message) for w in caught]
 
 
-def run_acm(case: Case, **options) -> dict:
-    """acm_rs.track with the true skeleton and default options (or ``options``)."""
+def run_acm(case: Case, second: int = 0, **options) -> dict:
+    """acm_rs.track with the true skeleton and default options (or ``options``); with
+    ``second`` > 0, :func:`acm_rs.second_solutions` at that many frames of the result."""
     refused = None
     try:
         res, wall, warned = _track(case, **options)
@@ -385,6 +386,24 @@ def run_acm(case: Case, **options) -> dict:
     )
     for w, (_, mask) in zip(row["windows"], case.windows, strict=True):
         w["coverage95"] = float(inside[mask].mean())
+    if second > 0:
+        t0 = time.perf_counter()
+        found = acm_rs.second_solutions(res, frames=second)
+        amb = found.ambiguous()
+        ambiguous = np.isin(res.joint_names, [name for name, *_ in amb])
+        row["second_solutions"] = {
+            "frames": int(len(found.frames)),
+            "seconds": time.perf_counter() - t0,
+            "tolerance_mm": found.tolerance * case.mm_per_unit,
+            "joints": [
+                {"joint": n, "fraction": f, "median_distance_mm": d * case.mm_per_unit}
+                for n, f, d in amb
+            ],
+            "coverage95_ambiguous": float(inside[:, ambiguous].mean()) if ambiguous.any() else None,
+            "coverage95_decided": float(inside[:, ~ambiguous].mean())
+            if (~ambiguous).any()
+            else None,
+        }
     if refused is not None:
         row["refused"] = refused
         row["normalization"] = f"normalization=Normalization(translation={norm.translation:.4g})"
@@ -519,6 +538,22 @@ def print_case(case: Case, acm: dict, peer: dict | None) -> None:
         cov = f"{100 * w['coverage95']:.1f} %"
         label = f"  ... {w['label']}"
         print(f"   {label:36s} {'-':>10s} {cov:>10s}")
+    second = acm.get("second_solutions")
+    if second:
+        names = ", ".join(
+            f"{j['joint']} {100 * j['fraction']:.0f} % {j['median_distance_mm']:.1f} mm"
+            for j in second["joints"]
+        )
+        print(
+            f"   {'joints with a second pose':36s} {'-':>10s} {len(second['joints']):>10d}   "
+            f"(markers within {second['tolerance_mm']:.3f} mm RMS, {second['frames']} frames "
+            f"searched in {second['seconds']:.1f} s{': ' + names if names else ''})"
+        )
+        for key, label in (("ambiguous", "those joints"), ("decided", "the other joints")):
+            value = second[f"coverage95_{key}"]
+            if value is not None:
+                cov = f"{100 * value:.1f} %"
+                print(f"   {'  ... coverage of ' + label:36s} {'-':>10s} {cov:>10s}")
     em = f"{acm['em_iterations']}{'' if acm['converged'] else ' (max)'}"
     by = acm["em_iterations_by_model"]
     print(
@@ -608,6 +643,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--motion", help="acm-rs's motion model (default: track's default)")
     ap.add_argument("--misfit", help="acm-rs's marker misfit (default: track's default)")
     ap.add_argument(
+        "--second-solutions",
+        type=int,
+        default=10,
+        metavar="N",
+        help="search N frames of acm-rs's result for second poses that fit its markers as "
+        "well (acm_rs.second_solutions; 0: skip)",
+    )
+    ap.add_argument(
         "--inject-misfit",
         type=float,
         default=0.0,
@@ -678,7 +721,7 @@ def main(argv: list[str] | None = None) -> int:
                     warmed = True
                 peer = run_peer(case)
         options = {"motion": args.motion, "misfit": args.misfit}
-        acm = run_acm(case, **{k: v for k, v in options.items() if v})
+        acm = run_acm(case, second=args.second_solutions, **{k: v for k, v in options.items() if v})
         print_case(case, acm, peer)
         rows.append((case, acm, peer))
         report["cases"][name] = {

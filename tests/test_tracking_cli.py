@@ -40,7 +40,7 @@ def test_track_then_export(project, capsys):
     code = main([
         "track", "--calibration", str(d / "calibration.toml"), "--skeleton",
         str(d / "skeleton.toml"), "--dlc", *dlc, "--max-iter", "3", "--frames", "0:25",
-        "--export", "anipose", "-o", str(out),
+        "--export", "anipose", "-o", str(out), "--second-solutions", "2",
     ])  # fmt: skip
     assert code == 0
     res = acm_rs.PoseResult.load(out.with_suffix(".npz"))
@@ -56,6 +56,7 @@ def test_track_then_export(project, capsys):
     assert c3d["data"]["points"].shape[2] == 25
     printed = capsys.readouterr().out
     assert "wrote" in printed
+    assert "in 2 searched frames" in printed  # the joint limits decide the rat's joints
 
 
 def test_track_errors_name_the_problem(project, capsys):

@@ -27,7 +27,15 @@ from .learning import LearnedSkeleton, fit_pose, learn_skeleton
 from .rotation import rodrigues, rodrigues_inverse, rodrigues_jacobian
 from .skeleton import BoneLengthConstraint, FKJacobian, Skeleton, SymmetryMap
 from .state import Normalization, StateMap
-from .tracking import OnlineTracker, PoseResult, read_chunked, track, track_long
+from .tracking import (
+    OnlineTracker,
+    PoseResult,
+    SecondSolutions,
+    read_chunked,
+    second_solutions,
+    track,
+    track_long,
+)
 
 __all__ = [
     "AcmNumericalError",
@@ -41,6 +49,7 @@ __all__ = [
     "PARAM_NAMES",
     "OnlineTracker",
     "PoseResult",
+    "SecondSolutions",
     "Skeleton",
     "StateMap",
     "SymmetryMap",
@@ -63,6 +72,7 @@ __all__ = [
     "rodrigues",
     "rodrigues_inverse",
     "rodrigues_jacobian",
+    "second_solutions",
     "track",
     "track_long",
 ]

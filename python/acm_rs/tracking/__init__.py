@@ -1,5 +1,6 @@
 """Probabilistic pose estimation (ACM supp. sec. 4): :func:`track` and :class:`PoseResult`."""
 
+from .ambiguity import SecondSolutions, second_solutions
 from .any_length import track
 from .bundle import read_smoothed, smooth_bundle, write_bundle
 from .long import track_long
@@ -12,10 +13,12 @@ __all__ = [
     "DEFAULT_GATE",
     "OnlineTracker",
     "PoseResult",
+    "SecondSolutions",
     "default_normalization",
     "gate_threshold",
     "read_chunked",
     "read_smoothed",
+    "second_solutions",
     "smooth_bundle",
     "track",
     "track_long",

@@ -105,6 +105,10 @@ def _cmd_track(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
+    if args.second_solutions > 0 and res.state_cov is not None:
+        from .ambiguity import second_solutions
+
+        print(f"  {second_solutions(res, frames=args.second_solutions).summary()}")
     files = res.save(out)
     for fmt in args.export or []:
         files += _export(res, fmt, out, args.rate, "joints")
@@ -318,6 +322,9 @@ def add_subcommands(sub) -> None:
     p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D/movement exports")
     p.add_argument("--plots", help="folder for the tracking figures")
     p.add_argument("--bundle", action="store_true", help="only write OUT.bundle.npz for acm-smooth")
+    p.add_argument("--second-solutions", type=int, default=0, metavar="N",
+                   help="search N frames for second poses that fit the markers as well and "
+                   "name the joints the markers leave ambiguous (0: skip)")  # fmt: skip
     p.add_argument("-o", "--output", help="output prefix, e.g. out/session1")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_project_option(p, "track")

@@ -1,0 +1,289 @@
+"""Second poses that fit the markers as well as the tracked one (joint ambiguity).
+
+A marker layout can leave a joint's position ambiguous: with the rat model's 3 mm marker
+offsets at shoulder, elbow, hip, knee and ankle, a limb's middle joint can swing about the
+axis from its parent to its child to a second position where every marker lands where it
+was (the two roots of a two-link chain's swivel). The markers then cannot tell the two
+poses apart, and a Gaussian posterior around one of them (UKF/RTS, ACM supp. Alg. 7-9)
+states a joint SD that does not cover the other. :func:`second_solutions` searches for such
+poses at a sample of frames so that a user learns which joints the markers do not decide.
+
+The search, per frame and per joint ``b`` with parent ``a`` and one child ``c``: rotate
+``b`` by pi about the axis ``a -> c``; fit the pose (the free entries of the result's state
+map) to the frame's forward-kinematics markers plus those swung joints (Levenberg-Marquardt
+with the exact Jacobians of Alg. 1); then fit the markers alone from there. A pose whose
+markers stay within ``tolerance`` (RMS) of the tracked pose's, inside the joint limits when
+the result enforced them, and that moves some joint beyond its own 95 % interval is a second
+solution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..skeleton import Skeleton
+from .result import PoseResult
+
+#: Default tolerance as a fraction of the median marker posterior SD of the result.
+TOLERANCE_OF_MARKER_SD = 0.1
+
+
+@dataclass(frozen=True)
+class SecondSolutions:
+    """Result of :func:`second_solutions`.
+
+    Attributes
+    ----------
+    frames : numpy.ndarray, shape (K,)
+        The frames searched.
+    distance : numpy.ndarray, shape (K, J)
+        Largest distance (world units) between a joint in the tracked pose and in a second
+        pose that fits the markers to within ``tolerance``; NaN where none moved the joint
+        beyond 1.96 times the norm of its posterior SD.
+    joint_names : tuple of str
+    units : str
+        The skeleton's length unit.
+    tolerance : float
+        Marker RMS (world units) within which a second pose counts as fitting as well.
+    """
+
+    frames: np.ndarray
+    distance: np.ndarray
+    joint_names: tuple[str, ...]
+    units: str
+    tolerance: float
+
+    def ambiguous(self) -> list[tuple[str, float, float]]:
+        """``(joint, fraction of the searched frames, median distance)`` of every joint with
+        a second solution in at least one frame, most frequent first."""
+        found = np.isfinite(self.distance)
+        rows = [
+            (name, float(found[:, j].mean()), float(np.nanmedian(self.distance[found[:, j], j])))
+            for j, name in enumerate(self.joint_names)
+            if found[:, j].any()
+        ]
+        return sorted(rows, key=lambda row: (-row[1], -row[2]))
+
+    def summary(self) -> str:
+        """One line naming the ambiguous joints (or saying there are none)."""
+        rows = self.ambiguous()
+        if not rows:
+            return (
+                f"no second pose fits the markers within {self.tolerance:.3g} {self.units} "
+                f"in {len(self.frames)} searched frames"
+            )
+        parts = ", ".join(
+            f"{name} ({100 * frac:.0f} % of frames, {dist:.3g} {self.units})"
+            for name, frac, dist in rows
+        )
+        return (
+            f"the markers do not decide these joints: a second pose fits them within "
+            f"{self.tolerance:.3g} {self.units} RMS with the joint elsewhere: {parts}; the "
+            "joints' SDs describe one of the poses only (joint limits or more markers away "
+            "from the joints' axes decide them)"
+        )
+
+
+def _swivel(points: np.ndarray, a: int, b: int, c: int) -> np.ndarray:
+    """``points`` with point ``b`` rotated by pi about the axis through ``a`` and ``c``."""
+    axis = points[c] - points[a]
+    norm = np.linalg.norm(axis)
+    out = points.copy()
+    if norm == 0:
+        return out
+    n = axis / norm
+    v = points[b] - points[a]
+    out[b] = points[a] + 2 * n * (n @ v) - v  # Rodrigues' formula at angle pi
+    return out
+
+
+def _subtree(children: list[np.ndarray], root: int) -> set[int]:
+    """The joint ``root`` and all its descendants."""
+    out, todo = set(), [root]
+    while todo:
+        j = todo.pop()
+        out.add(j)
+        todo.extend(int(c) for c in children[j])
+    return out
+
+
+def _fit(skeleton, x_full, free, lengths, marker_target, joint_target):
+    """Levenberg-Marquardt on the free pose entries; returns the full pose vector."""
+
+    def unpack(z):
+        x = x_full.copy()
+        x[free] = z
+        return x[:3], x[3:].reshape(-1, 3)
+
+    def residual(z):
+        joints, markers = skeleton.forward(*unpack(z), bone_lengths=lengths)
+        res = [(markers - marker_target).ravel()]
+        if joint_target is not None:
+            res.append((joints - joint_target).ravel())
+        return np.concatenate(res)
+
+    def jacobian(z):
+        d = skeleton.forward_jacobian(*unpack(z), bone_lengths=lengths)
+        rows = [d.d_markers_d_pose.reshape(-1, skeleton.n_pose)[:, free]]
+        if joint_target is not None:
+            rows.append(d.d_joints_d_pose.reshape(-1, skeleton.n_pose)[:, free])
+        return np.vstack(rows)
+
+    sol = least_squares(
+        residual, x_full[free], jac=jacobian, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=100
+    )
+    x = x_full.copy()
+    x[free] = sol.x
+    return x
+
+
+def second_solutions(
+    result: PoseResult,
+    *,
+    frames: int | np.ndarray = 10,
+    tolerance: float | None = None,
+) -> SecondSolutions:
+    """Search a sample of frames of a tracking result for second poses that fit the markers
+    as well.
+
+    Parameters
+    ----------
+    result : PoseResult
+        A result of :func:`acm_rs.track` (its skeleton, state map, poses and SDs are used).
+    frames : int or array_like of int
+        The number of evenly spaced frames to search, or the frames themselves. Each frame
+        costs two small least-squares fits per joint with one child (~0.8 s for the rat).
+    tolerance : float, optional
+        Marker RMS (world units) within which a second pose fits as well; default 0.1 x the
+        median of ``result.info["markers_std"]`` (a tenth of the markers' own uncertainty).
+
+    Returns
+    -------
+    SecondSolutions
+    """
+    n_frames = result.n_frames
+    if np.ndim(frames) == 0:
+        count = int(frames)
+        if count < 1:
+            raise ValueError(f"frames must be at least 1, got {count}")
+        picked = np.unique(np.linspace(0, n_frames - 1, min(count, n_frames)).round().astype(int))
+    else:
+        picked = np.asarray(frames, dtype=np.int64).ravel()
+        if picked.size == 0 or picked.min() < 0 or picked.max() >= n_frames:
+            raise ValueError(f"frames must lie in [0, {n_frames}), got {picked.tolist()}")
+    if tolerance is None:
+        msd = result.info.get("markers_std")
+        if msd is None or not np.isfinite(msd).any() or np.nanmedian(msd) <= 0:
+            raise ValueError("the result has no marker SDs: pass tolerance (world units)")
+        tolerance = TOLERANCE_OF_MARKER_SD * float(np.nanmedian(msd))
+    state_map = result.state_map
+    lengths = None
+    if state_map.stretch_bones.size:
+        lengths = np.array([state_map.lengths(result.state_mean[f]) for f in picked])
+    return search(
+        result.skeleton,
+        result.t[picked],
+        result.r[picked],
+        tolerance=tolerance,
+        joints_std=result.joints_std[picked],
+        free=np.asarray(state_map.free_indices, dtype=np.int64)[: state_map.n_pose_state],
+        within_limits=state_map.joint_limits,
+        bone_lengths=lengths,
+        frames=picked,
+    )
+
+
+def search(
+    skeleton: Skeleton,
+    t: np.ndarray,
+    r: np.ndarray,
+    *,
+    tolerance: float,
+    joints_std: np.ndarray | None = None,
+    free: np.ndarray | None = None,
+    within_limits: bool = False,
+    bone_lengths: np.ndarray | None = None,
+    frames: np.ndarray | None = None,
+) -> SecondSolutions:
+    """Search given poses for second poses with the same markers (see the module docstring).
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    t : numpy.ndarray, shape (K, 3)
+        Translations (world units).
+    r : numpy.ndarray, shape (K, n_bones, 3)
+        Bone rotations (Rodrigues vectors, rad).
+    tolerance : float
+        Marker RMS (world units) within which a second pose fits as well.
+    joints_std : numpy.ndarray, shape (K, J, 3), optional
+        Posterior SDs: a joint counts as moved beyond ``1.96 |SD|`` (and beyond
+        ``tolerance``); default: beyond ``tolerance``.
+    free : numpy.ndarray of int, optional
+        Indices of the pose entries ``[t, r.ravel()]`` the search may change (default all
+        rotation entries).
+    within_limits : bool
+        Count only second poses inside ``skeleton.joint_limits``.
+    bone_lengths : numpy.ndarray, shape (K, n_bones), optional
+        Per-pose bone lengths (elastic bones); default the skeleton's.
+    frames : numpy.ndarray of int, shape (K,), optional
+        Frame numbers to report (default ``0..K-1``).
+
+    Returns
+    -------
+    SecondSolutions
+    """
+    sk = skeleton
+    t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(r, dtype=np.float64).reshape(len(t), sk.n_bones, 3)
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"tolerance must be positive, got {tolerance}")
+    if free is None:
+        free = np.arange(3, sk.n_pose)
+    free = np.asarray(free, dtype=np.int64)
+    limits = sk.joint_limits.reshape(-1, 2)  # (3 n_bones, 2), rad
+    parents = np.asarray(sk.parents)
+    children = [np.flatnonzero(parents == j) for j in range(len(parents))]
+    bones = np.asarray(sk.bones)
+    chains = []
+    for b in range(len(parents)):
+        if parents[b] < 0 or len(children[b]) != 1:
+            continue
+        a = int(parents[b])
+        # The swing moves the subtree of ``a``: refit the rotations of the bones ending in it
+        # (the bone ending at ``a`` included), the rest of the pose stays.
+        inside = _subtree(children, a)
+        entries = np.array([3 + 3 * k + i for k in range(len(bones)) if bones[k, 1] in inside
+                            for i in range(3)], dtype=np.int64)  # fmt: skip
+        local = np.intersect1d(free, entries)
+        if local.size:
+            chains.append((a, b, int(children[b][0]), local))
+    distance = np.full((len(t), len(parents)), np.nan)
+    for row in range(len(t)):
+        x0 = np.concatenate([t[row], r[row].ravel()])
+        if not np.isfinite(x0).all():
+            continue
+        lengths = None if bone_lengths is None else bone_lengths[row]
+        joints, markers = sk.forward(t[row], r[row], bone_lengths=lengths)
+        beyond = np.full(len(parents), tolerance)
+        if joints_std is not None:
+            beyond = np.maximum(beyond, 1.96 * np.linalg.norm(joints_std[row], axis=-1))
+        for a, b, c, local in chains:
+            start = _fit(sk, x0, local, lengths, markers, _swivel(joints, a, b, c))
+            x = _fit(sk, start, local, lengths, markers, None)
+            new_joints, new_markers = sk.forward(x[:3], x[3:].reshape(-1, 3), bone_lengths=lengths)
+            rms = float(np.sqrt(((new_markers - markers) ** 2).sum(axis=-1).mean()))
+            if rms > tolerance:
+                continue
+            if within_limits:
+                rot = x[3:]
+                if ((rot < limits[:, 0] - 1e-9) | (rot > limits[:, 1] + 1e-9)).any():
+                    continue
+            moved = np.linalg.norm(new_joints - joints, axis=-1)
+            hit = moved > beyond
+            distance[row, hit] = np.fmax(distance[row, hit], moved[hit])
+    picked = np.arange(len(t)) if frames is None else np.asarray(frames, dtype=np.int64)
+    return SecondSolutions(picked, distance, tuple(sk.joint_names), sk.units, float(tolerance))
