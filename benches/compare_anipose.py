@@ -394,7 +394,7 @@ def run_acm(case: Case, second: int = 0, **options) -> dict:
         row["second_solutions"] = {
             "frames": int(len(found.frames)),
             "seconds": time.perf_counter() - t0,
-            "tolerance_mm": found.tolerance * case.mm_per_unit,
+            "chi2": found.chi2,
             "joints": [
                 {"joint": n, "fraction": f, "median_distance_mm": d * case.mm_per_unit}
                 for n, f, d in amb
@@ -546,7 +546,7 @@ def print_case(case: Case, acm: dict, peer: dict | None) -> None:
         )
         print(
             f"   {'joints with a second pose':36s} {'-':>10s} {len(second['joints']):>10d}   "
-            f"(markers within {second['tolerance_mm']:.3f} mm RMS, {second['frames']} frames "
+            f"(markers within Δχ² {second['chi2']:g}, {second['frames']} frames "
             f"searched in {second['seconds']:.1f} s{': ' + names if names else ''})"
         )
         for key, label in (("ambiguous", "those joints"), ("decided", "the other joints")):

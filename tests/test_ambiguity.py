@@ -5,6 +5,8 @@ its mirror position lies at twice its distance from that axis (computed here wit
 with the product's forward kinematics).
 """
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -52,7 +54,7 @@ def mirror_distance(hip, knee, ankle) -> float:
 def test_a_knee_no_marker_pins_has_a_mirror_pose():
     sk = leg(knee_marker=False)
     r = np.zeros((1, sk.n_bones, 3))
-    found = search(sk, REST[:1], r, tolerance=1e-5)
+    found = search(sk, REST[:1], r, marker_std=1e-5)
     names = [name for name, *_ in found.ambiguous()]
     assert names == ["knee"]
     knee = NAMES.index("knee")
@@ -62,7 +64,7 @@ def test_a_knee_no_marker_pins_has_a_mirror_pose():
 
 def test_a_marker_on_the_knee_decides_it():
     sk = leg(knee_marker=True)
-    found = search(sk, REST[:1], np.zeros((1, sk.n_bones, 3)), tolerance=1e-5)
+    found = search(sk, REST[:1], np.zeros((1, sk.n_bones, 3)), marker_std=1e-5)
     assert found.ambiguous() == []
     assert np.isnan(found.distance).all()
     assert found.summary().startswith("no second pose")
@@ -73,11 +75,39 @@ def test_a_joint_inside_its_uncertainty_is_not_reported():
     d = mirror_distance(*REST[1:4])
     std = np.zeros((1, len(NAMES), 3))
     std[0, NAMES.index("knee")] = d / 1.96 / np.sqrt(3) * 1.01  # 1.96 |SD| just beyond d
-    found = search(sk, REST[:1], np.zeros((1, sk.n_bones, 3)), tolerance=1e-5, joints_std=std)
+    found = search(sk, REST[:1], np.zeros((1, sk.n_bones, 3)), marker_std=1e-5, joints_std=std)
     assert found.ambiguous() == []
 
 
-def test_bad_tolerance_is_refused():
+def test_bad_bounds_are_refused():
     sk = leg(knee_marker=False)
-    with pytest.raises(ValueError, match="tolerance"):
-        search(sk, REST[:1], np.zeros((1, sk.n_bones, 3)), tolerance=0.0)
+    r = np.zeros((1, sk.n_bones, 3))
+    with pytest.raises(ValueError, match="chi2"):
+        search(sk, REST[:1], r, marker_std=1e-5, chi2=0.0)
+    with pytest.raises(ValueError, match="marker_std"):
+        search(sk, REST[:1], r, marker_std=np.nan)
+
+
+def test_track_names_the_joint_its_markers_leave_open():
+    from acm_rs.demo import demo_rig
+
+    rig = demo_rig()
+    rng = np.random.default_rng(3)
+    results = {}
+    for knee_marker in (False, True):
+        sk = leg(knee_marker)
+        n = 30
+        r = 0.05 * np.sin(np.linspace(0, 3, n))[:, None, None] * rng.normal(size=(1, sk.n_bones, 3))
+        t = np.tile(REST[0], (n, 1))
+        _, markers = sk.forward(t, r)
+        det = rig.project(markers) + rng.normal(scale=0.5, size=(len(rig), n, sk.n_markers, 2))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = acm_rs.track(rig, sk, det, max_iter=5, second_solutions=2, misfit="off")
+        said = [str(w.message) for w in caught if "do not decide" in str(w.message)]
+        results[knee_marker] = (res.info["second_solutions"], said)
+    found, said = results[False]
+    assert "knee" in found["joints"] and found["frames"] == [7, 22]
+    assert len(said) == 1 and "knee" in said[0]
+    found, said = results[True]
+    assert found["joints"] == {} and said == []

@@ -56,7 +56,7 @@ def test_track_then_export(project, capsys):
     assert c3d["data"]["points"].shape[2] == 25
     printed = capsys.readouterr().out
     assert "wrote" in printed
-    assert "in 2 searched frames" in printed  # the joint limits decide the rat's joints
+    assert "in the 2 searched frames" in printed  # the joint limits decide the rat's joints
 
 
 def test_track_errors_name_the_problem(project, capsys):

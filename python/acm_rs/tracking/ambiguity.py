@@ -11,14 +11,16 @@ poses at a sample of frames so that a user learns which joints the markers do no
 The search, per frame and per joint ``b`` with parent ``a`` and one child ``c``: rotate
 ``b`` by pi about the axis ``a -> c``; fit the pose (the free entries of the result's state
 map) to the frame's forward-kinematics markers plus those swung joints (Levenberg-Marquardt
-with the exact Jacobians of Alg. 1); then fit the markers alone from there. A pose whose
-markers stay within ``tolerance`` (RMS) of the tracked pose's, inside the joint limits when
-the result enforced them, and that moves some joint beyond its own 95 % interval is a second
-solution.
+with the exact Jacobians of Alg. 1); then fit the markers alone from there, each marker
+coordinate weighted by its posterior SD. A pose whose markers differ from the tracked pose's
+by ``Δχ² = Σ (Δm / σ_m)² ≤ chi2`` (default 4: a likelihood ratio of at least e⁻² in the
+markers' own uncertainty), inside the joint limits when the result enforced them, and that
+moves some joint beyond its own 95 % interval is a second solution.
 """
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,8 +29,8 @@ from scipy.optimize import least_squares
 from ..skeleton import Skeleton
 from .result import PoseResult
 
-#: Default tolerance as a fraction of the median marker posterior SD of the result.
-TOLERANCE_OF_MARKER_SD = 0.1
+#: Default bound on ``Δχ²`` of a second pose's markers in the metric of their posterior SDs.
+CHI2 = 4.0
 
 
 @dataclass(frozen=True)
@@ -43,18 +45,21 @@ class SecondSolutions:
         Largest distance (world units) between a joint in the tracked pose and in a second
         pose that fits the markers to within ``tolerance``; NaN where none moved the joint
         beyond 1.96 times the norm of its posterior SD.
+    displacement : numpy.ndarray, shape (K, J, 3)
+        The joint's move to that second pose (world units); NaN where ``distance`` is.
     joint_names : tuple of str
     units : str
         The skeleton's length unit.
-    tolerance : float
-        Marker RMS (world units) within which a second pose counts as fitting as well.
+    chi2 : float
+        Bound on the markers' ``Δχ²`` within which a second pose counts as fitting as well.
     """
 
     frames: np.ndarray
     distance: np.ndarray
+    displacement: np.ndarray
     joint_names: tuple[str, ...]
     units: str
-    tolerance: float
+    chi2: float
 
     def ambiguous(self) -> list[tuple[str, float, float]]:
         """``(joint, fraction of the searched frames, median distance)`` of every joint with
@@ -72,23 +77,23 @@ class SecondSolutions:
         rows = self.ambiguous()
         if not rows:
             return (
-                f"no second pose fits the markers within {self.tolerance:.3g} {self.units} "
-                f"in {len(self.frames)} searched frames"
+                f"no second pose fits the markers within Δχ² {self.chi2:g} in "
+                f"{len(self.frames)} searched frames"
             )
         parts = ", ".join(
             f"{name} ({100 * frac:.0f} % of frames, {dist:.3g} {self.units})"
             for name, frac, dist in rows
         )
         return (
-            f"the markers do not decide these joints: a second pose fits them within "
-            f"{self.tolerance:.3g} {self.units} RMS with the joint elsewhere: {parts}; the "
+            f"the markers do not decide these joints: a second pose fits them within Δχ² "
+            f"{self.chi2:g} (their posterior SDs) with the joint elsewhere: {parts}; the "
             "joints' SDs describe one of the poses only (joint limits or more markers away "
             "from the joints' axes decide them)"
         )
 
 
-def _swivel(points: np.ndarray, a: int, b: int, c: int) -> np.ndarray:
-    """``points`` with point ``b`` rotated by pi about the axis through ``a`` and ``c``."""
+def _swivel(points: np.ndarray, a: int, b: int, c: int, angle: float) -> np.ndarray:
+    """``points`` with point ``b`` rotated by ``angle`` about the axis through ``a`` and ``c``."""
     axis = points[c] - points[a]
     norm = np.linalg.norm(axis)
     out = points.copy()
@@ -96,7 +101,9 @@ def _swivel(points: np.ndarray, a: int, b: int, c: int) -> np.ndarray:
         return out
     n = axis / norm
     v = points[b] - points[a]
-    out[b] = points[a] + 2 * n * (n @ v) - v  # Rodrigues' formula at angle pi
+    along = n * (n @ v)
+    # Rodrigues' rotation formula
+    out[b] = points[a] + along + np.cos(angle) * (v - along) + np.sin(angle) * np.cross(n, v)
     return out
 
 
@@ -110,8 +117,11 @@ def _subtree(children: list[np.ndarray], root: int) -> set[int]:
     return out
 
 
-def _fit(skeleton, x_full, free, lengths, marker_target, joint_target):
-    """Levenberg-Marquardt on the free pose entries; returns the full pose vector."""
+def _fit(skeleton, x_full, free, lengths, marker_target, weight, joint_target):
+    """Levenberg-Marquardt on the free pose entries (marker residuals times ``weight``,
+    (M, 3); joint residuals times its median); returns the full pose vector."""
+    w_markers = weight.ravel()[:, None]
+    w_joints = float(np.median(weight))
 
     def unpack(z):
         x = x_full.copy()
@@ -120,16 +130,16 @@ def _fit(skeleton, x_full, free, lengths, marker_target, joint_target):
 
     def residual(z):
         joints, markers = skeleton.forward(*unpack(z), bone_lengths=lengths)
-        res = [(markers - marker_target).ravel()]
+        res = [(markers - marker_target).ravel() * w_markers[:, 0]]
         if joint_target is not None:
-            res.append((joints - joint_target).ravel())
+            res.append((joints - joint_target).ravel() * w_joints)
         return np.concatenate(res)
 
     def jacobian(z):
         d = skeleton.forward_jacobian(*unpack(z), bone_lengths=lengths)
-        rows = [d.d_markers_d_pose.reshape(-1, skeleton.n_pose)[:, free]]
+        rows = [d.d_markers_d_pose.reshape(-1, skeleton.n_pose)[:, free] * w_markers]
         if joint_target is not None:
-            rows.append(d.d_joints_d_pose.reshape(-1, skeleton.n_pose)[:, free])
+            rows.append(d.d_joints_d_pose.reshape(-1, skeleton.n_pose)[:, free] * w_joints)
         return np.vstack(rows)
 
     sol = least_squares(
@@ -144,7 +154,8 @@ def second_solutions(
     result: PoseResult,
     *,
     frames: int | np.ndarray = 10,
-    tolerance: float | None = None,
+    chi2: float = CHI2,
+    angles: tuple[float, ...] = (np.pi,),
 ) -> SecondSolutions:
     """Search a sample of frames of a tracking result for second poses that fit the markers
     as well.
@@ -152,13 +163,17 @@ def second_solutions(
     Parameters
     ----------
     result : PoseResult
-        A result of :func:`acm_rs.track` (its skeleton, state map, poses and SDs are used).
+        A result of :func:`acm_rs.track` (its skeleton, state map, poses, joint SDs and
+        ``info["markers_std"]`` are used).
     frames : int or array_like of int
         The number of evenly spaced frames to search, or the frames themselves. Each frame
         costs two small least-squares fits per joint with one child (~0.8 s for the rat).
-    tolerance : float, optional
-        Marker RMS (world units) within which a second pose fits as well; default 0.1 x the
-        median of ``result.info["markers_std"]`` (a tenth of the markers' own uncertainty).
+    chi2 : float
+        Bound on ``Σ (Δm / σ_m)²`` over the marker coordinates (σ: the posterior SDs of the
+        result's forward-kinematics markers) within which a second pose fits as well.
+    angles : tuple of float
+        Swing angles (rad) to start each joint's search from (default pi; each costs as
+        much).
 
     Returns
     -------
@@ -169,16 +184,15 @@ def second_solutions(
         count = int(frames)
         if count < 1:
             raise ValueError(f"frames must be at least 1, got {count}")
-        picked = np.unique(np.linspace(0, n_frames - 1, min(count, n_frames)).round().astype(int))
+        count = min(count, n_frames)
+        picked = np.unique(((np.arange(count) + 0.5) * n_frames / count).astype(int))
     else:
         picked = np.asarray(frames, dtype=np.int64).ravel()
         if picked.size == 0 or picked.min() < 0 or picked.max() >= n_frames:
             raise ValueError(f"frames must lie in [0, {n_frames}), got {picked.tolist()}")
-    if tolerance is None:
-        msd = result.info.get("markers_std")
-        if msd is None or not np.isfinite(msd).any() or np.nanmedian(msd) <= 0:
-            raise ValueError("the result has no marker SDs: pass tolerance (world units)")
-        tolerance = TOLERANCE_OF_MARKER_SD * float(np.nanmedian(msd))
+    msd = result.info.get("markers_std_fk", result.info.get("markers_std"))
+    if msd is None or result.state_cov is None:
+        raise ValueError("the result has no posterior (method='deterministic'?): nothing to test")
     state_map = result.state_map
     lengths = None
     if state_map.stretch_bones.size:
@@ -187,12 +201,14 @@ def second_solutions(
         result.skeleton,
         result.t[picked],
         result.r[picked],
-        tolerance=tolerance,
+        marker_std=np.asarray(msd)[picked],
+        chi2=chi2,
         joints_std=result.joints_std[picked],
         free=np.asarray(state_map.free_indices, dtype=np.int64)[: state_map.n_pose_state],
         within_limits=state_map.joint_limits,
         bone_lengths=lengths,
         frames=picked,
+        angles=angles,
     )
 
 
@@ -201,12 +217,14 @@ def search(
     t: np.ndarray,
     r: np.ndarray,
     *,
-    tolerance: float,
+    marker_std: float | np.ndarray,
+    chi2: float = CHI2,
     joints_std: np.ndarray | None = None,
     free: np.ndarray | None = None,
     within_limits: bool = False,
     bone_lengths: np.ndarray | None = None,
     frames: np.ndarray | None = None,
+    angles: tuple[float, ...] = (np.pi,),
 ) -> SecondSolutions:
     """Search given poses for second poses with the same markers (see the module docstring).
 
@@ -217,11 +235,14 @@ def search(
         Translations (world units).
     r : numpy.ndarray, shape (K, n_bones, 3)
         Bone rotations (Rodrigues vectors, rad).
-    tolerance : float
-        Marker RMS (world units) within which a second pose fits as well.
+    marker_std : float or numpy.ndarray, shape (K, M, 3)
+        SD of each marker coordinate (world units): the metric of ``Δχ²``. Values below
+        1e-6 of their median are raised to it.
+    chi2 : float
+        Bound on ``Σ (Δm / σ_m)²`` within which a second pose fits as well.
     joints_std : numpy.ndarray, shape (K, J, 3), optional
-        Posterior SDs: a joint counts as moved beyond ``1.96 |SD|`` (and beyond
-        ``tolerance``); default: beyond ``tolerance``.
+        Posterior SDs: a joint counts as moved beyond ``1.96 |SD|``, and always beyond
+        ``2 sqrt(chi2 / 3)`` marker SDs (their median).
     free : numpy.ndarray of int, optional
         Indices of the pose entries ``[t, r.ravel()]`` the search may change (default all
         rotation entries).
@@ -231,6 +252,8 @@ def search(
         Per-pose bone lengths (elastic bones); default the skeleton's.
     frames : numpy.ndarray of int, shape (K,), optional
         Frame numbers to report (default ``0..K-1``).
+    angles : tuple of float
+        Swing angles (rad) to start from (default pi).
 
     Returns
     -------
@@ -239,8 +262,13 @@ def search(
     sk = skeleton
     t = np.asarray(t, dtype=np.float64).reshape(-1, 3)
     r = np.asarray(r, dtype=np.float64).reshape(len(t), sk.n_bones, 3)
-    if not (np.isfinite(tolerance) and tolerance > 0):
-        raise ValueError(f"tolerance must be positive, got {tolerance}")
+    if not (np.isfinite(chi2) and chi2 > 0):
+        raise ValueError(f"chi2 must be positive, got {chi2}")
+    sd = np.broadcast_to(np.asarray(marker_std, dtype=np.float64), (len(t), sk.n_markers, 3))
+    if not np.isfinite(sd).all() or not (sd > 0).any():
+        raise ValueError("marker_std must be finite and positive")
+    floor = 1e-6 * float(np.median(sd[sd > 0]))
+    weight = 1.0 / np.maximum(sd, floor)
     if free is None:
         free = np.arange(3, sk.n_pose)
     free = np.asarray(free, dtype=np.int64)
@@ -262,28 +290,32 @@ def search(
         if local.size:
             chains.append((a, b, int(children[b][0]), local))
     distance = np.full((len(t), len(parents)), np.nan)
+    displacement = np.full((len(t), len(parents), 3), np.nan)
     for row in range(len(t)):
         x0 = np.concatenate([t[row], r[row].ravel()])
         if not np.isfinite(x0).all():
             continue
         lengths = None if bone_lengths is None else bone_lengths[row]
         joints, markers = sk.forward(t[row], r[row], bone_lengths=lengths)
-        beyond = np.full(len(parents), tolerance)
+        beyond = np.full(len(parents), 2.0 * np.sqrt(chi2 / 3.0) / np.median(weight[row]))
         if joints_std is not None:
             beyond = np.maximum(beyond, 1.96 * np.linalg.norm(joints_std[row], axis=-1))
-        for a, b, c, local in chains:
-            start = _fit(sk, x0, local, lengths, markers, _swivel(joints, a, b, c))
-            x = _fit(sk, start, local, lengths, markers, None)
+        for (a, b, c, local), angle in itertools.product(chains, angles):
+            swung = _swivel(joints, a, b, c, angle)
+            start = _fit(sk, x0, local, lengths, markers, weight[row], swung)
+            x = _fit(sk, start, local, lengths, markers, weight[row], None)
             new_joints, new_markers = sk.forward(x[:3], x[3:].reshape(-1, 3), bone_lengths=lengths)
-            rms = float(np.sqrt(((new_markers - markers) ** 2).sum(axis=-1).mean()))
-            if rms > tolerance:
+            if float((((new_markers - markers) * weight[row]) ** 2).sum()) > chi2:
                 continue
             if within_limits:
                 rot = x[3:]
                 if ((rot < limits[:, 0] - 1e-9) | (rot > limits[:, 1] + 1e-9)).any():
                     continue
             moved = np.linalg.norm(new_joints - joints, axis=-1)
-            hit = moved > beyond
-            distance[row, hit] = np.fmax(distance[row, hit], moved[hit])
+            hit = (moved > beyond) & ~(moved <= distance[row])  # beyond, and the largest
+            distance[row, hit] = moved[hit]
+            displacement[row, hit] = (new_joints - joints)[hit]
     picked = np.arange(len(t)) if frames is None else np.asarray(frames, dtype=np.int64)
-    return SecondSolutions(picked, distance, tuple(sk.joint_names), sk.units, float(tolerance))
+    return SecondSolutions(
+        picked, distance, displacement, tuple(sk.joint_names), sk.units, float(chi2)
+    )

@@ -73,7 +73,9 @@ def track(
         if need > limit:
             # (the marker misfit needs the state covariances, which that path does not keep:
             # its default is not applied there, "off" is accepted)
-            allowed = {k: (v, "off") if k == "misfit" else (v,) for k, v in _DEFAULTS.items()}
+            # (nor the second-solution search, which needs them too: 0 is accepted)
+            off = {"misfit": "off", "second_solutions": 0}
+            allowed = {k: (v, off[k]) if k in off else (v,) for k, v in _DEFAULTS.items()}
             unsupported = {
                 k: options[k] for k in _DEFAULTS if k in options and options[k] not in allowed[k]
             }
@@ -98,7 +100,8 @@ def track(
 _SIGNATURE = inspect.signature(track_in_memory)
 #: Defaults of the options the bounded-memory path cannot change.
 _DEFAULTS = {
-    k: _SIGNATURE.parameters[k].default for k in ("noise_model", "stop", "tol", "dof", "misfit")
+    k: _SIGNATURE.parameters[k].default
+    for k in ("noise_model", "stop", "tol", "dof", "misfit", "second_solutions")
 }
 track.__doc__ = (track.__doc__ or "") + "\n" + (track_in_memory.__doc__ or "")
 track.__signature__ = _SIGNATURE.replace(  # type: ignore[attr-defined]

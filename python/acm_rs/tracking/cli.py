@@ -93,7 +93,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
         return 0
     res = track(
         rig, skeleton, points, method=args.method, progress=None, motion=args.motion,
-        noise_model=args.noise_model, **opts,
+        noise_model=args.noise_model, second_solutions=args.second_solutions, **opts,
     )  # fmt: skip
     res.info["frames"] = ls.frames[sel]
     if res.info.get("interrupted"):
@@ -105,10 +105,9 @@ def _cmd_track(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
-    if args.second_solutions > 0 and res.state_cov is not None:
-        from .ambiguity import second_solutions
-
-        print(f"  {second_solutions(res, frames=args.second_solutions).summary()}")
+    second = res.info.get("second_solutions")
+    if second and not second["joints"]:
+        print(f"  no second pose fits the markers in the {len(second['frames'])} searched frames")
     files = res.save(out)
     for fmt in args.export or []:
         files += _export(res, fmt, out, args.rate, "joints")
@@ -322,9 +321,9 @@ def add_subcommands(sub) -> None:
     p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D/movement exports")
     p.add_argument("--plots", help="folder for the tracking figures")
     p.add_argument("--bundle", action="store_true", help="only write OUT.bundle.npz for acm-smooth")
-    p.add_argument("--second-solutions", type=int, default=0, metavar="N",
+    p.add_argument("--second-solutions", type=int, default=1, metavar="N",
                    help="search N frames for second poses that fit the markers as well and "
-                   "name the joints the markers leave ambiguous (0: skip)")  # fmt: skip
+                   "name the joints the markers leave ambiguous (1; 0: skip)")  # fmt: skip
     p.add_argument("-o", "--output", help="output prefix, e.g. out/session1")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_project_option(p, "track")
