@@ -101,13 +101,14 @@ def test_track_names_the_joint_its_markers_leave_open():
         t = np.tile(REST[0], (n, 1))
         _, markers = sk.forward(t, r)
         det = rig.project(markers) + rng.normal(scale=0.5, size=(len(rig), n, sk.n_markers, 2))
+        det[:, :10] = np.nan  # the search keeps to frames with detections
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res = acm_rs.track(rig, sk, det, max_iter=5, second_solutions=2, misfit="off")
         said = [str(w.message) for w in caught if "do not decide" in str(w.message)]
         results[knee_marker] = (res.info["second_solutions"], said)
     found, said = results[False]
-    assert "knee" in found["joints"] and found["frames"] == [7, 22]
+    assert "knee" in found["joints"] and found["frames"] == [15, 25]
     assert len(said) == 1 and "knee" in said[0]
     found, said = results[True]
     assert found["joints"] == {} and said == []

@@ -143,7 +143,7 @@ def _fit(skeleton, x_full, free, lengths, marker_target, weight, joint_target):
         return np.vstack(rows)
 
     sol = least_squares(
-        residual, x_full[free], jac=jacobian, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=100
+        residual, x_full[free], jac=jacobian, method="lm", xtol=1e-6, ftol=1e-6, max_nfev=50
     )
     x = x_full.copy()
     x[free] = sol.x
@@ -166,7 +166,8 @@ def second_solutions(
         A result of :func:`acm_rs.track` (its skeleton, state map, poses, joint SDs and
         ``info["markers_std"]`` are used).
     frames : int or array_like of int
-        The number of evenly spaced frames to search, or the frames themselves. Each frame
+        The number of frames to search, evenly spread over the frames with at least the
+        median number of detections, or the frames themselves. Each frame
         costs two small least-squares fits per joint with one child (~0.8 s for the rat).
     chi2 : float
         Bound on ``Σ (Δm / σ_m)²`` over the marker coordinates (σ: the posterior SDs of the
@@ -184,8 +185,13 @@ def second_solutions(
         count = int(frames)
         if count < 1:
             raise ValueError(f"frames must be at least 1, got {count}")
-        count = min(count, n_frames)
-        picked = np.unique(((np.arange(count) + 0.5) * n_frames / count).astype(int))
+        # evenly spread over the frames with at least the median number of detections
+        seen = np.isfinite(result.detections[..., 0]).sum(axis=(0, 2))
+        candidates = np.flatnonzero((seen >= np.median(seen)) & (seen > 0))
+        if candidates.size == 0:
+            raise ValueError("no frame has a detection: nothing to search")
+        count = min(count, candidates.size)
+        picked = candidates[((np.arange(count) + 0.5) * candidates.size / count).astype(int)]
     else:
         picked = np.asarray(frames, dtype=np.int64).ravel()
         if picked.size == 0 or picked.min() < 0 or picked.max() >= n_frames:
