@@ -46,6 +46,9 @@ def test_a_recording_over_the_budget_takes_the_bounded_path_with_the_same_result
     assert len(said) == 1 and "400 frames" in str(said[0].message)
     assert bounded.info["bounded_memory"] and "bounded_memory" not in full.info
     assert bounded.state_cov is None and full.state_cov is not None
+    # both searched one frame for second poses (the rat's joint limits leave none)
+    for res in (bounded, full):
+        assert res.info["second_solutions"]["joints"] == {}
     assert bounded.joints.shape == full.joints.shape == truth.shape
     assert bounded.info["status"].shape == det.shape[:3]
     # the same posterior away from the start (the streaming smoother starts from a single-frame

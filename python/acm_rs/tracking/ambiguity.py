@@ -197,7 +197,7 @@ def second_solutions(
         if picked.size == 0 or picked.min() < 0 or picked.max() >= n_frames:
             raise ValueError(f"frames must lie in [0, {n_frames}), got {picked.tolist()}")
     msd = result.info.get("markers_std_fk", result.info.get("markers_std"))
-    if msd is None or result.state_cov is None:
+    if msd is None or not np.any(result.joints_std):
         raise ValueError("the result has no posterior (method='deterministic'?): nothing to test")
     state_map = result.state_map
     lengths = None

@@ -22,6 +22,7 @@ from .track import (
     in_memory_bytes,
     track_in_memory,
     warn_rigid_lengths,
+    warn_second_solutions,
 )
 
 #: Options of :func:`track_in_memory` that the bounded-memory path passes on.
@@ -73,9 +74,7 @@ def track(
         if need > limit:
             # (the marker misfit needs the state covariances, which that path does not keep:
             # its default is not applied there, "off" is accepted)
-            # (nor the second-solution search, which needs them too: 0 is accepted)
-            off = {"misfit": "off", "second_solutions": 0}
-            allowed = {k: (v, off[k]) if k in off else (v,) for k, v in _DEFAULTS.items()}
+            allowed = {k: (v, "off") if k == "misfit" else (v,) for k, v in _DEFAULTS.items()}
             unsupported = {
                 k: options[k] for k in _DEFAULTS if k in options and options[k] not in allowed[k]
             }
@@ -85,23 +84,31 @@ def track(
                     f"{limit / 2**30:.1f} GiB), and the bounded-memory path does not take "
                     f"{unsupported}: leave them at their defaults, or raise memory_limit"
                 )
-            unknown = set(options) - set(_BOUNDED_OPTIONS) - set(_DEFAULTS) - {"method", "elastic"}
+            unknown = (
+                set(options) - set(_BOUNDED_OPTIONS) - set(_DEFAULTS)
+                - {"method", "elastic", "second_solutions"}
+            )  # fmt: skip
             if unknown:
                 raise TypeError(f"track() got unexpected keyword argument(s) {sorted(unknown)}")
             if options.get("elastic", True) is not False:
                 warn_rigid_lengths(skeleton, "the bounded-memory path (raise memory_limit)")
-            return track_bounded(
+            result = track_bounded(
                 rig, skeleton, detections, need=need, limit=limit,
                 **{k: v for k, v in options.items() if k in _BOUNDED_OPTIONS},
             )  # fmt: skip
+            second = options.get("second_solutions", _SECOND_DEFAULT)
+            if second > 0 and not result.info.get("interrupted"):
+                warn_second_solutions(result, second)
+            return result
     return track_in_memory(rig, skeleton, detections, **options)
 
 
 _SIGNATURE = inspect.signature(track_in_memory)
+#: Frames the second-pose search takes by default (both paths run it).
+_SECOND_DEFAULT = _SIGNATURE.parameters["second_solutions"].default
 #: Defaults of the options the bounded-memory path cannot change.
 _DEFAULTS = {
-    k: _SIGNATURE.parameters[k].default
-    for k in ("noise_model", "stop", "tol", "dof", "misfit", "second_solutions")
+    k: _SIGNATURE.parameters[k].default for k in ("noise_model", "stop", "tol", "dof", "misfit")
 }
 track.__doc__ = (track.__doc__ or "") + "\n" + (track_in_memory.__doc__ or "")
 track.__signature__ = _SIGNATURE.replace(  # type: ignore[attr-defined]

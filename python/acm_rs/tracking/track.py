@@ -487,7 +487,7 @@ def _warn_implausible_fit(result: PoseResult, fit_px: float, factor: float = 3.0
         )
 
 
-def _warn_second_solutions(result: PoseResult, frames: int) -> None:
+def warn_second_solutions(result: PoseResult, frames: int) -> None:
     """Search ``frames`` frames for second poses; record and name the ambiguous joints."""
     t0 = time.perf_counter()
     found = search_second_solutions(result, frames=frames)
@@ -656,6 +656,7 @@ def track_in_memory(
         a joint beyond its 95 % interval (:func:`acm_rs.second_solutions`; beyond the paper).
         Joints found are named in a warning and in ``info["second_solutions"]``: the marker
         layout does not decide them and their SDs describe one of the poses. 0: no search.
+        :func:`acm_rs.track` runs it on the bounded-memory path too.
         Cost per frame: ~0.1 s for the bundled rat, ~0.8 s for a 29-joint skeleton without
         joint limits.
     progress : bool or None
@@ -920,7 +921,7 @@ def track_in_memory(
     _warn_implausible_fit(result, fit_px)
     _warn_em(result, max_iter, ll_tol)
     if second_solutions > 0 and result.state_cov is not None:
-        _warn_second_solutions(result, second_solutions)
+        warn_second_solutions(result, second_solutions)
     if _on_terminal(progress):
         print(result.summary(), file=sys.stderr)
     return result
