@@ -107,8 +107,11 @@ def test_track_names_the_joint_its_markers_leave_open():
             res = acm_rs.track(rig, sk, det, max_iter=5, second_solutions=2, misfit="off")
         said = [str(w.message) for w in caught if "do not decide" in str(w.message)]
         results[knee_marker] = (res.info["second_solutions"], said)
+        if not knee_marker:
+            res_open = res
     found, said = results[False]
     assert "knee" in found["joints"] and found["frames"] == [15, 25]
     assert len(said) == 1 and "knee" in said[0]
+    assert "do not decide" in res_open.summary() and "knee" in res_open.summary()
     found, said = results[True]
     assert found["joints"] == {} and said == []

@@ -163,6 +163,13 @@ class PoseResult:
                 f"  elastic segments: {len(e)} bones, learned stretch SD "
                 f"{100 * sd[e].min():.1f}-{100 * sd[e].max():.1f} % of their lengths"
             )
+        second = self.info.get("second_solutions")
+        if second and second.get("joints"):
+            names = ", ".join(second["joints"])
+            lines.append(
+                f"  joints the markers do not decide (a second pose fits them as well at frame(s) "
+                f"{second['frames']}): {names}"
+            )
         if "seconds" in self.info:
             lines.append(f"  wall time {self.info['seconds']:.2f} s")
         return "\n".join(lines)
