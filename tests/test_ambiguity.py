@@ -115,3 +115,5 @@ def test_track_names_the_joint_its_markers_leave_open():
     assert "do not decide" in res_open.summary() and "knee" in res_open.summary()
     found, said = results[True]
     assert found["joints"] == {} and said == []
+    with pytest.raises(ValueError, match="second_solutions"):
+        acm_rs.track(rig, sk, det, second_solutions=-1)
