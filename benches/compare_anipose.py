@@ -20,6 +20,9 @@ model; the detections are projected by it too):
   errors); EM iterations (acm-rs) and wall times;
 * joint errors (and coverage) over the frames that make a case hard: the camera outage, the
   gap and the 40 frames after it, the speed burst. Warnings acm-rs raises are printed.
+* the joints the markers do not decide (acm-rs only, ``--second-solutions N``, 10 frames):
+  :func:`acm_rs.second_solutions` on the result, and the joints' coverage split between
+  those joints and the others.
 
 Cases (240 frames by default; ``--quick``: 120):
 
