@@ -20,7 +20,7 @@ REST = np.array(
 )
 
 
-def leg(knee_marker: bool) -> acm_rs.Skeleton:
+def leg(knee_marker: bool, joint_limits=None) -> acm_rs.Skeleton:
     markers = {
         "pelvis_a": ("pelvis", REST[0] + [0.5, 0.0, 0.0]),
         "pelvis_b": ("pelvis", REST[0] + [0.0, 0.5, 0.0]),
@@ -39,6 +39,7 @@ def leg(knee_marker: bool) -> acm_rs.Skeleton:
         list(markers),
         [j for j, _ in markers.values()],
         np.array([p for _, p in markers.values()]),
+        joint_limits=joint_limits,
         name="leg",
         units="cm",
     )
@@ -68,6 +69,17 @@ def test_a_marker_on_the_knee_decides_it():
     assert found.ambiguous() == []
     assert np.isnan(found.distance).all()
     assert found.summary().startswith("no second pose")
+
+
+def test_second_poses_outside_the_joint_limits_do_not_count():
+    # limits of +-1e-6 rad hold the tracked pose (all zeros) and no pose that moves the knee
+    # by more than the search's floor (2.3e-5 cm here)
+    limit = np.tile([-1e-6, 1e-6], (3, 1))
+    sk = leg(knee_marker=False, joint_limits=dict.fromkeys(NAMES[1:], limit))
+    r = np.zeros((1, sk.n_bones, 3))
+    assert search(sk, REST[:1], r, marker_std=1e-5, within_limits=True).ambiguous() == []
+    unbounded = search(sk, REST[:1], r, marker_std=1e-5, within_limits=False)
+    assert [name for name, *_ in unbounded.ambiguous()] == ["knee"]
 
 
 def test_a_joint_inside_its_uncertainty_is_not_reported():
