@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..rotation import rodrigues
 from ..skeleton import Skeleton
 from .result import PoseResult
 
@@ -97,13 +98,8 @@ def _swivel(points: np.ndarray, a: int, b: int, c: int, angle: float) -> np.ndar
     axis = points[c] - points[a]
     norm = np.linalg.norm(axis)
     out = points.copy()
-    if norm == 0:
-        return out
-    n = axis / norm
-    v = points[b] - points[a]
-    along = n * (n @ v)
-    # Rodrigues' rotation formula
-    out[b] = points[a] + along + np.cos(angle) * (v - along) + np.sin(angle) * np.cross(n, v)
+    if norm > 0:
+        out[b] = points[a] + rodrigues(axis * (angle / norm)) @ (points[b] - points[a])
     return out
 
 
