@@ -20,7 +20,7 @@ REST = np.array(
 )
 
 
-def leg(knee_marker: bool, joint_limits=None) -> acm_rs.Skeleton:
+def leg(knee_marker: bool, joint_limits=None, units: str = "cm") -> acm_rs.Skeleton:
     markers = {
         "pelvis_a": ("pelvis", REST[0] + [0.5, 0.0, 0.0]),
         "pelvis_b": ("pelvis", REST[0] + [0.0, 0.5, 0.0]),
@@ -41,7 +41,7 @@ def leg(knee_marker: bool, joint_limits=None) -> acm_rs.Skeleton:
         np.array([p for _, p in markers.values()]),
         joint_limits=joint_limits,
         name="leg",
-        units="cm",
+        units=units,
     )
 
 
@@ -60,7 +60,14 @@ def test_a_knee_no_marker_pins_has_a_mirror_pose():
     assert names == ["knee"]
     knee = NAMES.index("knee")
     assert found.distance[0, knee] == pytest.approx(mirror_distance(*REST[1:4]), rel=1e-5)
-    assert "knee" in found.summary()
+    assert "knee" in found.summary() and " cm)" in found.summary()
+
+
+def test_the_summary_names_a_unit_when_the_skeleton_declares_none():
+    sk = leg(knee_marker=False, units="")
+    found = search(sk, REST[:1], np.zeros((1, sk.n_bones, 3)), marker_std=1e-5)
+    assert [name for name, *_ in found.ambiguous()] == ["knee"]
+    assert " world units)" in found.summary() and " )" not in found.summary()
 
 
 def test_a_marker_on_the_knee_decides_it():

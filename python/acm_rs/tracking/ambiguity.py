@@ -81,8 +81,9 @@ class SecondSolutions:
                 f"no second pose fits the markers within Δχ² {self.chi2:g} in "
                 f"{len(self.frames)} searched frames"
             )
+        unit = self.units or "world units"
         parts = ", ".join(
-            f"{name} ({100 * frac:.0f} % of frames, {dist:.3g} {self.units})"
+            f"{name} ({100 * frac:.0f} % of frames, {dist:.3g} {unit})"
             for name, frac, dist in rows
         )
         return (
