@@ -83,8 +83,7 @@ class SecondSolutions:
             )
         unit = self.units or "world units"
         parts = ", ".join(
-            f"{name} ({100 * frac:.0f} % of frames, {dist:.3g} {unit})"
-            for name, frac, dist in rows
+            f"{name} ({100 * frac:.0f} % of frames, {dist:.3g} {unit})" for name, frac, dist in rows
         )
         return (
             f"the markers do not decide these joints: a second pose fits them within Δχ² "
