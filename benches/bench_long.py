@@ -4,7 +4,7 @@ difference to the smoother of the whole recording with the same parameters.
 
     python benches/bench_long.py [--frames 40000] [--subset 10000] [--windows 10]
                                  [--chunk 2000] [--burn-in 100] [--method chunked]
-                                 [--compare]
+                                 [--compare] [--track] [--overrelax A|none]
 
 The synthetic rat (4 cameras, DeepLabCut-like detections with 15 % missing and 1 % confident
 outliers, one camera out for 5 % of the recording) is generated in blocks straight into a
@@ -83,11 +83,11 @@ def report(name: str, res: dict, truth) -> None:
     )
 
 
-def _track(rig, sk, det, lik, truth, rss0: float, frames: int) -> int:
-    """``acm_rs.track`` with its defaults on the memory-mapped recording: end-to-end time,
-    peak RSS and the joints' error."""
+def _track(rig, sk, det, lik, truth, rss0: float, frames: int, **options) -> int:
+    """``acm_rs.track`` with its defaults (or ``options``) on the memory-mapped recording:
+    end-to-end time, peak RSS and the joints' error."""
     t0 = time.perf_counter()
-    res = acm_rs.track(rig, sk, det, likelihood=lik)
+    res = acm_rs.track(rig, sk, det, likelihood=lik, **options)
     total = time.perf_counter() - t0
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     info = res.info
@@ -123,7 +123,14 @@ def main(argv: list[str] | None = None) -> int:
         help="call acm_rs.track with its defaults on the memmap instead (issue 29 "
         "item 1: it chooses the bounded-memory path itself)",
     )
+    ap.add_argument(
+        "--overrelax",
+        help="over-relaxed EM's growth factor, or 'none' for plain EM (default: the default)",
+    )
     args = ap.parse_args(argv)
+    options = {}
+    if args.overrelax is not None:
+        options["overrelax"] = None if args.overrelax == "none" else float(args.overrelax)
     warnings.simplefilter("default")
     sk = datasets.individual_skeleton(models.rat(), seed=1)
     rig = demo_rig()
@@ -144,12 +151,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"generated {args.frames} frames in {time.perf_counter() - t0:.0f} s (memmap)")
         rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         if args.track:
-            return _track(rig, sk, det, lik, truth, rss0, args.frames)
+            return _track(rig, sk, det, lik, truth, rss0, args.frames, **options)
         t0 = time.perf_counter()
         info = acm_rs.track_long(
             rig, sk, det, folder / "poses.h5", likelihood=lik, subset=args.subset,
             n_windows=args.windows, chunk=args.chunk, burn_in=args.burn_in, tol=args.tol,
-            motion=args.motion, overwrite=True, method=args.method,
+            motion=args.motion, overwrite=True, method=args.method, **options,
         )  # fmt: skip
         total = time.perf_counter() - t0
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

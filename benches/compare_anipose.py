@@ -646,6 +646,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--motion", help="acm-rs's motion model (default: track's default)")
     ap.add_argument("--misfit", help="acm-rs's marker misfit (default: track's default)")
     ap.add_argument(
+        "--overrelax",
+        help="acm-rs's over-relaxed EM growth factor, or 'none' for plain EM (default: "
+        "track's default)",
+    )
+    ap.add_argument(
         "--second-solutions",
         type=int,
         default=10,
@@ -724,7 +729,10 @@ def main(argv: list[str] | None = None) -> int:
                     warmed = True
                 peer = run_peer(case)
         options = {"motion": args.motion, "misfit": args.misfit}
-        acm = run_acm(case, second=args.second_solutions, **{k: v for k, v in options.items() if v})
+        options = {k: v for k, v in options.items() if v}
+        if args.overrelax is not None:
+            options["overrelax"] = None if args.overrelax == "none" else float(args.overrelax)
+        acm = run_acm(case, second=args.second_solutions, **options)
         print_case(case, acm, peer)
         rows.append((case, acm, peer))
         report["cases"][name] = {

@@ -268,8 +268,9 @@ def test_a_hub_skeleton_is_tracked_better_than_per_frame_fits():
     det, lik = datasets.dlc_like_detections(rig, sk, t, r, noise_px=2.0, seed=2)
     joints, _ = datasets.true_positions(sk, t, r)
     res = acm_rs.track(rig, sk, det, likelihood=lik, motion="random_walk")
-    ll = [h["log_likelihood"] for h in res.em_history]
-    assert res.info["converged"] and len(ll) < 30
+    # (over-relaxed steps that scored lower were replaced by the plain step: not EM's path)
+    ll = [h["log_likelihood"] for h in res.em_history if not h["rejected"]]
+    assert res.info["converged"] and len(res.em_history) < 30
     assert sum(b < a for a, b in zip(ll, ll[1:], strict=False)) <= 1
     assert ll[-1] > ll[0]
     per_frame = acm_rs.track(rig, sk, det, likelihood=lik, method="deterministic")

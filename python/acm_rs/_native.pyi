@@ -9,6 +9,8 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 N_CAMERA_PARAMS: int
+DEFAULT_OVERRELAX: float
+MAX_OVERRELAX: float
 
 class AcmNumericalError(ArithmeticError): ...
 
@@ -237,6 +239,7 @@ class NativeTracker:
         ll_tol: float | None = None,
         dof: float | None = None,
         patience: int | None = 10,
+        overrelax: float | None = None,
     ) -> tuple[dict[str, F64], list[dict[str, float]], bool, bool]: ...
     def em_outcome(self) -> dict[str, Any] | None: ...
     def e_step(
@@ -270,3 +273,6 @@ class NativeTracker:
 def smooth_bundle(
     input: str, output: str, keep_cov: bool = True
 ) -> tuple[int, int, bool, float]: ...
+def extrapolate_params(
+    a: tuple[F64, F64, F64, F64], b: tuple[F64, F64, F64, F64], eta: float
+) -> tuple[F64, F64, F64, F64] | None: ...

@@ -717,9 +717,12 @@ fn native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<tracking::PyBufferPool>()?;
     m.add_class::<tracking::PyOnlineTracker>()?;
     m.add_function(wrap_pyfunction!(tracking::smooth_bundle, m)?)?;
+    m.add_function(wrap_pyfunction!(tracking::extrapolate_params, m)?)?;
     m.add_class::<calibration::PyCalibration>()?;
     m.add("AcmNumericalError", m.py().get_type::<AcmNumericalError>())?;
     m.add("N_CAMERA_PARAMS", camera::N_PARAMS)?;
+    m.add("DEFAULT_OVERRELAX", crate::tracking::DEFAULT_OVERRELAX)?;
+    m.add("MAX_OVERRELAX", crate::tracking::MAX_OVERRELAX)?;
     gapfill::register(m)?;
     Ok(())
 }

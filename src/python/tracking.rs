@@ -228,8 +228,10 @@ impl PyTracker {
     /// stops the run between iterations (the result is returned with `interrupted = True`).
     /// Returns `(params dict, history list of dicts, converged, interrupted)`.
     /// `patience`: stop after this many E-steps in a row below the best log-likelihood
-    /// (`EmOptions::patience`; `None` or 0: run on).
-    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None, ll_tol=None, dof=None, patience=Some(crate::tracking::DEFAULT_PATIENCE)))]
+    /// (`EmOptions::patience`; `None` or 0: run on). `overrelax`: growth factor `α > 1` of
+    /// over-relaxed EM (`EmOptions::overrelax`; `None`: plain EM). History entries carry
+    /// `step` (1: the plain step) and `rejected`.
+    #[pyo3(signature = (mu0, v0, vz, vx, max_iter, tol, gate=None, callback=None, ll_tol=None, dof=None, patience=Some(crate::tracking::DEFAULT_PATIENCE), overrelax=None))]
     #[allow(clippy::too_many_arguments)]
     fn run_em<'py>(
         &mut self,
@@ -245,7 +247,15 @@ impl PyTracker {
         ll_tol: Option<f64>,
         dof: Option<f64>,
         patience: Option<usize>,
+        overrelax: Option<f64>,
     ) -> PyResult<EmReturn<'py>> {
+        if let Some(a) = overrelax {
+            if !(a.is_finite() && a > 1.0) {
+                return Err(pyo3::exceptions::PyValueError::new_err(format!(
+                    "overrelax must be a growth factor > 1 (or None), got {a}"
+                )));
+            }
+        }
         let init = self.params(&(mu0, v0, vz, vx))?;
         let opts = EmOptions {
             max_iter,
@@ -254,6 +264,7 @@ impl PyTracker {
             ll_tol,
             dof,
             patience: patience.filter(|&p| p > 0),
+            overrelax,
         };
         let mut py_err: Option<PyErr> = None;
         let inner = &mut self.inner;
@@ -297,6 +308,8 @@ impl PyTracker {
                 d.set_item("iteration", it.iteration)?;
                 d.set_item("delta", it.delta)?;
                 d.set_item("seconds", it.seconds)?;
+                d.set_item("step", it.step)?;
+                d.set_item("rejected", it.rejected)?;
                 Ok(d)
             })
             .collect::<PyResult<Vec<_>>>()?;
@@ -579,6 +592,35 @@ pub(super) fn smooth_bundle(
         s.outcome.converged,
         s.mean_reprojection_px,
     ))
+}
+
+/// [`crate::tracking::extrapolate`]: the parameters `eta` times as far from `a` as the
+/// M-step's `b` (over-relaxed EM; each a tuple `(mu0 (n,), V0 (n, n), Vz (n, n), Vx_diag
+/// (n_x,))`) → a tuple of the same, or `None` where a covariance is not positive definite.
+#[pyfunction]
+pub(super) fn extrapolate_params<'py>(
+    py: Python<'py>,
+    a: ParamArrays<'py>,
+    b: ParamArrays<'py>,
+    eta: f64,
+) -> PyResult<Option<(Out<'py>, Out<'py>, Out<'py>, Out<'py>)>> {
+    let n = view(&a.0, "mu0", &[None])?.len();
+    let n_x = view(&a.3, "Vx_diag", &[None])?.len();
+    let (pa, pb) = (params_from(&a, n, n_x)?, params_from(&b, n, n_x)?);
+    if !eta.is_finite() {
+        return Err(pyo3::exceptions::PyValueError::new_err(format!(
+            "eta must be finite, got {eta}"
+        )));
+    }
+    let Some(p) = py.detach(|| crate::tracking::extrapolate(&pa, &pb, eta)) else {
+        return Ok(None);
+    };
+    Ok(Some((
+        out(py, p.mu0, &[n])?,
+        out(py, p.v0, &[n, n])?,
+        out(py, p.vz, &[n, n])?,
+        out(py, p.vx, &[n_x])?,
+    )))
 }
 
 /// The online tracker of one live recording (issue 16): `update` per frame, fixed-lag and

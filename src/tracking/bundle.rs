@@ -269,6 +269,7 @@ pub fn bundle_from_arrays(m: &BTreeMap<String, Array>, what: &str) -> Result<Bun
         ll_tol: Some(ll_tol).filter(|v| v.is_finite() && *v > 0.0),
         dof: Some(dof).filter(|v| v.is_finite() && *v > 0.0),
         patience: Some(super::DEFAULT_PATIENCE),
+        overrelax: Some(super::DEFAULT_OVERRELAX),
     };
     let mut init = Params::initial(mu0, model.n_meas(), noise);
     // Optional start of diag(V_x) (`acm_rs.tracking.track.initial_vx`: the detections' own

@@ -104,6 +104,7 @@ fn em_increases_fit_and_converges_on_linear_model() {
         ll_tol: None,
         dof: None,
         patience: None,
+        overrelax: None,
     };
     let out = tr.run_em(p, &opts, |_| true).unwrap();
     assert!(out.converged, "{:?}", out.history.last());
@@ -225,6 +226,7 @@ fn student_t_weights_keep_outliers_out_of_the_noise_estimate() {
             ll_tol: None,
             dof,
             patience: None,
+            overrelax: None,
         };
         let out = tr.run_em(p.clone(), &opts, |_| true).unwrap();
         let vx = out.params.vx.iter().sum::<f64>() / n_x as f64;
@@ -875,6 +877,7 @@ fn em_returns_the_best_parameters_it_evaluated() {
         ll_tol: None,
         dof: None,
         patience: None,
+        overrelax: None,
     };
     let mut tr = Tracker::new(em.clone(), x.clone()).unwrap();
     let out = tr.run_em(p.clone(), &opts, |_| true).unwrap();
@@ -900,6 +903,7 @@ fn em_returns_the_best_parameters_it_evaluated() {
     assert!(first_best + 3 < ll.len(), "{ll:?}");
     let patient = EmOptions {
         patience: Some(3),
+        overrelax: None,
         ..opts
     };
     let mut tr3 = Tracker::new(em, x).unwrap();
@@ -925,6 +929,8 @@ fn the_log_likelihood_stop_needs_two_small_changes() {
             log_lik: ll,
             ..FilterStats::default()
         },
+        step: 1.0,
+        rejected: false,
     };
     let tol = 1e-3; // 1 nat for 1,000 entries
     let h: Vec<Iteration> = [0.0, 500.0, 500.5].map(it).to_vec();
@@ -977,4 +983,109 @@ fn memoryless_rows_match_the_explicit_transition() {
         assert!((filter::f_left(&a, tr) - &f * &a).amax() < 1e-12);
         assert!((filter::f_right(&a, tr) - &a * f.transpose()).amax() < 1e-12);
     }
+}
+
+fn spd(n: usize, seed: u64) -> Vec<f64> {
+    let mut rng = Lcg(seed);
+    let g: Vec<f64> = (0..n * n).map(|_| rng.next()).collect();
+    let mut a = vec![0.0; n * n];
+    for i in 0..n {
+        for j in 0..n {
+            a[i * n + j] = (0..n).map(|k| g[i * n + k] * g[j * n + k]).sum::<f64>();
+        }
+        a[i * n + i] += 0.1;
+    }
+    a
+}
+
+#[test]
+fn over_relaxed_parameters_follow_the_geodesic() {
+    let n = 4;
+    let from = Params {
+        mu0: vec![0.0, 1.0, 2.0, 3.0],
+        v0: spd(n, 1),
+        vz: spd(n, 2),
+        vx: vec![1e-3, 2e-3],
+    };
+    let to = Params {
+        mu0: vec![1.0, 1.0, 0.0, 3.5],
+        v0: spd(n, 3),
+        vz: spd(n, 4),
+        vx: vec![2e-3, 1e-3],
+    };
+    let close = |a: &[f64], b: &[f64], tol: f64| {
+        a.iter()
+            .zip(b)
+            .all(|(x, y)| (x - y).abs() <= tol * (1.0 + y.abs()))
+    };
+    // η = 0 and 1 are the ends
+    let p0 = super::extrapolate(&from, &to, 0.0).unwrap();
+    let p1 = super::extrapolate(&from, &to, 1.0).unwrap();
+    assert!(close(&p0.vz, &from.vz, 1e-10) && close(&p1.vz, &to.vz, 1e-10));
+    assert!(close(&p1.v0, &to.v0, 1e-10) && close(&p1.vx, &to.vx, 1e-12));
+    // η = 2 in closed form: A #₂ B = B A⁻¹ B; V_x: b² / a; μ0: 2 b − a
+    let p2 = super::extrapolate(&from, &to, 2.0).unwrap();
+    let a = nalgebra::DMatrix::from_row_slice(n, n, &from.vz);
+    let b = nalgebra::DMatrix::from_row_slice(n, n, &to.vz);
+    let want = &b * a.clone().try_inverse().unwrap() * &b;
+    assert!(close(&p2.vz, want.transpose().as_slice(), 1e-9));
+    assert!(close(&p2.vx, &[4e-3, 0.5e-3], 1e-12));
+    assert!(close(&p2.mu0, &[2.0, 1.0, -2.0, 4.0], 1e-12));
+    // far out it stays positive definite
+    let p8 = super::extrapolate(&from, &to, 8.0).unwrap();
+    let m = nalgebra::DMatrix::from_row_slice(n, n, &p8.vz);
+    assert!(m.clone().cholesky().is_some() && close(&p8.vz, m.transpose().as_slice(), 1e-12));
+    // a covariance that is not positive definite: no step
+    let mut bad = to.clone();
+    bad.vz[0] = -1.0;
+    assert!(super::extrapolate(&from, &bad, 2.0).is_none());
+    let mut bad = to;
+    bad.vx[1] = 0.0;
+    assert!(super::extrapolate(&from, &bad, 2.0).is_none());
+}
+
+#[test]
+fn over_relaxed_em_reaches_plain_ems_fit_in_fewer_e_steps() {
+    let (em, x, p, _, _, _) = linear_problem(11);
+    let run = |overrelax: Option<f64>, max_iter: usize| {
+        let mut tr = Tracker::new(em.clone(), x.clone()).unwrap();
+        let opts = EmOptions {
+            max_iter,
+            tol: 1e-12,
+            gate: None,
+            ll_tol: None,
+            dof: None,
+            patience: None,
+            overrelax,
+        };
+        tr.run_em(p.clone(), &opts, |_| true).unwrap()
+    };
+    // plain EM's fixed point after many iterations
+    let long = run(None, 400);
+    let target = long.final_stats.log_lik - 0.05;
+    let first_at = |h: &[Iteration]| h.iter().position(|it| it.stats.log_lik >= target);
+    let plain = run(None, 150);
+    let over = run(Some(1.5), 150);
+    let (kp, ko) = (first_at(&plain.history), first_at(&over.history));
+    assert!(
+        matches!((kp, ko), (Some(kp), Some(ko)) if 2 * ko < kp),
+        "E-steps to within 0.05 nats of plain EM's end: plain {kp:?}, over-relaxed {ko:?}"
+    );
+    assert!(over.history.iter().any(|it| it.step > 1.0 && !it.rejected));
+    // a rejected step is followed by the plain one; an accepted one never scored below
+    // the point it came from
+    for w in over.history.windows(2) {
+        if w[0].rejected {
+            assert_eq!(w[1].step, 1.0);
+        }
+    }
+    // the same fixed point
+    let rel = |a: &[f64], b: &[f64]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs() / y.abs())
+            .fold(0.0, f64::max)
+    };
+    assert!(rel(&over.params.vx, &long.params.vx) < 0.02);
+    assert!(rel(&over.params.vz[..1], &long.params.vz[..1]) < 0.02);
 }

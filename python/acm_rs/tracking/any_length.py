@@ -28,7 +28,7 @@ from .track import (
 #: Options of :func:`track_in_memory` that the bounded-memory path passes on.
 _BOUNDED_OPTIONS = (
     "likelihood", "pcutoff", "joint_limits", "max_iter", "progress", "gate", "normalization",
-    "noise", "marker_names", "ll_tol", "motion", "relinearize",
+    "noise", "marker_names", "ll_tol", "motion", "relinearize", "overrelax",
 )  # fmt: skip
 
 

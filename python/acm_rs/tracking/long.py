@@ -64,7 +64,9 @@ from .track import (
     DEFAULT_LL_TOL,
     DEFAULT_MOTION,
     DEFAULT_NOISE,
+    DEFAULT_OVERRELAX,
     EM_PATIENCE,
+    MAX_OVERRELAX,
     MOTION_ORDER,
     _first_pose,
     _measurements,
@@ -140,9 +142,17 @@ def _combine(new: list[dict], frames: list[int], counts: list[np.ndarray], prev_
     return 0.5 * (vz + vz.T), vx
 
 
+def _extrapolate(p: tuple, q: tuple, eta: float) -> tuple | None:
+    """Parameters ``eta`` times as far from ``p`` as the M-step's ``q`` (Rust
+    ``tracking::extrapolate``); None where a covariance is not positive definite."""
+    c = [tuple(np.ascontiguousarray(a, dtype=np.float64) for a in x) for x in (p, q)]
+    return _native.extrapolate_params(c[0], c[1], float(eta))
+
+
 def _em_windows(
     trackers: list, inits: list[tuple], max_iter: int, ll_tol: float, gate: float | None,
     pool: ThreadPoolExecutor, printer: Callable, release: bool = False,
+    overrelax: float | None = None,
 ) -> tuple[list[tuple], list[dict], bool]:  # fmt: skip
     """Alg. 11 over independent windows (one ``NativeTracker`` each; each window's E- and
     M-step in parallel with the others'); stops when the summed marginal log-likelihood gains
@@ -156,7 +166,13 @@ def _em_windows(
     E-step under them so that the trackers hold their moments. ``release``: each window's
     covariances are freed after its M-step (only its means are kept), so that EM holds the
     covariances of only the windows being worked on: EM's peak RSS 1.76 → 1.15 GB at the
-    default 10 × 1,000 frames of the velocity state."""
+    default 10 × 1,000 frames of the velocity state. ``overrelax``: over-relaxed EM as
+    ``Tracker::run_em`` (``EmOptions::overrelax``): each window's parameters are moved ``η``
+    times the M-step's change (``_native.extrapolate_params``; the shared ``V_z``, ``V_x``
+    alike in every window), ``η`` growing by this factor while the summed log-likelihood
+    does not fall below the point the step came from; a step that falls is replaced by the
+    plain M-step, and the stop compares a change after a step of factor ``η`` with
+    ``η · ll_tol``."""
     params = list(inits)
     history: list[dict] = []
     converged = False
@@ -170,33 +186,63 @@ def _em_windows(
         return stats, new, (tr.mask() == _USED).sum(axis=0).ravel()
 
     best: tuple[float, int, list[tuple]] | None = None  # (log-likelihood, iteration, params)
+    # over-relaxation: the factor of the evaluated step, the next step's, and (for an
+    # over-relaxed step) the plain M-step's parameters and the log-likelihood to beat
+    step, eta = 1.0, 1.0
+    fallback: tuple[list[tuple], float] | None = None
     for it in range(1, max_iter + 1):
         t0 = time.perf_counter()
         evaluated = params
         done = list(pool.map(em_step, trackers, params))
         stats, new, counts = ([d[k] for d in done] for k in range(3))
+        tot = {k: sum(s[k] for s in stats) for k in stats[0]}
+        ll = float(tot["log_likelihood"])
+        if np.isfinite(ll) and (best is None or ll > best[0]):
+            best = (ll, it, evaluated)
+        if fallback is not None:
+            plain, ll_from = fallback
+            fallback = None
+            if not ll >= ll_from:
+                # the over-relaxed step scored lower: evaluate the plain one next
+                seconds = time.perf_counter() - t0
+                history.append({
+                    "iteration": it, "delta": float("nan"), "seconds": seconds, **tot,
+                    "step": step, "rejected": True,
+                })  # fmt: skip
+                printer(it, float("nan"), seconds, tot)
+                params, step, eta = plain, 1.0, 1.0
+                continue
         vz, vx = _combine(new, frames, counts, params[0][3])
         nxt = [(p["mu0"], p["V0"], vz, vx) for p in new]
         # Alg. 13's measure over the shared parameters (diag V_z, V_x)
         prev = np.concatenate([params[0][2].diagonal(), params[0][3]])
         delta = float(np.mean(np.abs(np.concatenate([vz.diagonal(), vx]) / prev - 1)))
-        params = nxt
-        tot = {k: sum(s[k] for s in stats) for k in stats[0]}
         seconds = time.perf_counter() - t0
         history.append({
             "iteration": it, "delta": delta, "seconds": seconds, **tot,
+            "step": step, "rejected": False,
         })  # fmt: skip
         printer(it, delta, seconds, tot)
-        ll = float(tot["log_likelihood"])
-        if np.isfinite(ll) and (best is None or ll > best[0]):
-            best = (ll, it, evaluated)
-        if len(history) > 1:
-            gain = abs(history[-1]["log_likelihood"] - history[-2]["log_likelihood"])
-            if gain < ll_tol * max(tot["used"], 1):
+        held = [h for h in history if not h["rejected"]]
+        if len(held) > 1:
+            gain = abs(held[-1]["log_likelihood"] - held[-2]["log_likelihood"])
+            if gain < step * ll_tol * max(tot["used"], 1):
+                params = nxt
                 converged = True
                 break
         if best is not None and it >= best[1] + EM_PATIENCE:
+            params = nxt
             break
+        params, step = nxt, 1.0
+        if overrelax is not None and np.isfinite(ll):
+            grown = min(eta * overrelax, MAX_OVERRELAX) if history[-1]["step"] > 1.0 else overrelax
+            far = [_extrapolate(p, q, grown) for p, q in zip(evaluated, nxt, strict=True)]
+            if all(f is not None for f in far):
+                fallback = (nxt, ll)
+                params, step, eta = far, grown, grown
+    if fallback is not None:
+        # max_iter ended on an over-relaxed step that was never evaluated
+        params = fallback[0]
     if best is not None and history:
         last = history[-1]
         stalled = best[1] + EM_PATIENCE <= last["iteration"] and not converged
@@ -270,6 +316,7 @@ def learn_windows(
     progress: bool | None = False,
     windows: Sequence[tuple[int, int]] = (),
     workers: int = 2,
+    overrelax: float | None = DEFAULT_OVERRELAX,
 ) -> SubsetFit:
     """Learn Θ by EM (Alg. 11) on independent windows of one recording.
 
@@ -279,7 +326,7 @@ def learn_windows(
         Detections of each window in pixels, skeleton marker order, NaN where missing.
     norm : Normalization
         Sec. 3.3 constants.
-    motion, joint_limits, max_iter, ll_tol, gate, noise, relinearize, progress
+    motion, joint_limits, max_iter, ll_tol, gate, noise, relinearize, progress, overrelax
         As :func:`acm_rs.track` (the Gaussian noise model).
     windows : sequence of (start, stop)
         The windows' frame ranges, recorded in the result.
@@ -328,7 +375,7 @@ def learn_windows(
         rw = trackers(1, range(len(xs)))
         # (the last iteration's posterior serves the fits, hints and the velocity start below)
         params, history, converged = _em_windows(rw, inits, max_iter, ll_tol, gate_thr, pool,
-                                                 printer)  # fmt: skip
+                                                 printer, overrelax=overrelax)  # fmt: skip
         for h in history:
             h["motion"] = "random_walk"
         # windows where the tracker does badly (e.g. a hard stretch) would inflate the shared
@@ -349,8 +396,9 @@ def learn_windows(
             rw = [rw[k] for k in keep]
             left = max(1, max_iter - len(history))
             params, more, converged = _em_windows(
-                rw, [params[k] for k in keep], left, ll_tol, gate_thr, pool, printer
-            )
+                rw, [params[k] for k in keep], left, ll_tol, gate_thr, pool, printer,
+                overrelax=overrelax,
+            )  # fmt: skip
             history = history + [h | {"motion": "random_walk", "windows": len(rw)} for h in more]
         used, note, final = "random_walk", "", rw
         rw_params = params
@@ -380,7 +428,7 @@ def learn_windows(
             # in the window prior: the means of EM's last E-step do, without a final one and
             # without the covariances)
             vparams, more, vconv = _em_windows(vel, vinit, left, ll_tol, gate_thr, pool, printer,
-                                               release=True)  # fmt: skip
+                                               release=True, overrelax=overrelax)  # fmt: skip
             for h in more:
                 h["motion"] = "velocity"
             worse = _velocity_worse(history[-1], more[-1]) if history and more else ""
@@ -817,6 +865,7 @@ def track_long(
     workers: int = 2,
     overwrite: bool = False,
     progress: bool | None = False,
+    overrelax: float | None = DEFAULT_OVERRELAX,
 ) -> dict:
     """Track a recording of any length in bounded memory: Θ by EM on a subset of windows,
     then the chunked (or the exact streaming) smoother with Θ fixed, streamed to an HDF5
@@ -893,7 +942,7 @@ def track_long(
     fit = learn_windows(
         rig, skeleton, windows_det, norm, motion=motion, joint_limits=joint_limits,
         max_iter=max_iter, ll_tol=ll_tol, gate=gate, noise=noise, relinearize=relinearize,
-        progress=progress, windows=wins, workers=workers,
+        progress=progress, windows=wins, workers=workers, overrelax=overrelax,
     )  # fmt: skip
     del windows_det
     rw_params = fit.extra.get("rw_params")
