@@ -156,16 +156,22 @@ def test_skeleton_snapshots_top_and_side(result):
 def test_em_convergence_has_one_point_per_iteration(result):
     fig = plots.em_convergence(result)
     assert len(fig.axes) == 2
-    delta_ax, time_ax = fig.axes
-    n = len(result.em_history)
-    np.testing.assert_allclose(
-        delta_ax.lines[0].get_ydata(), [h["delta"] for h in result.em_history]
-    )
-    assert len(delta_ax.lines[0].get_xdata()) == n
+    ll_ax, time_ax = fig.axes
+    hist = result.em_history
+    kept = [h for h in hist if not h["rejected"]]
+    # the default stop watches the log-likelihood: one point per iteration kept, crosses for
+    # the over-relaxed steps that were replaced
+    np.testing.assert_allclose(ll_ax.lines[0].get_ydata(), [h["log_likelihood"] for h in kept])
+    assert len(ll_ax.lines) == (2 if len(kept) < len(hist) else 1)
+    heights = [p.get_height() for p in time_ax.patches]
+    np.testing.assert_allclose(heights, [h["seconds"] for h in hist])
+    # Alg. 13's stop: its Δ on a log axis with the tolerance
+    alg13 = dataclasses.replace(result, info={**result.info, "stop": "alg13"})
+    delta_ax = plots.em_convergence(alg13).axes[0]
+    np.testing.assert_allclose(delta_ax.lines[0].get_ydata(), [h["delta"] for h in hist])
+    assert len(delta_ax.lines[0].get_xdata()) == len(hist)
     np.testing.assert_allclose(delta_ax.lines[1].get_ydata(), result.info["tol"])
     assert delta_ax.get_yscale() == "log"
-    heights = [p.get_height() for p in time_ax.patches]
-    np.testing.assert_allclose(heights, [h["seconds"] for h in result.em_history])
     with pytest.raises(ValueError, match="no EM history"):
         plots.em_convergence(dataclasses.replace(result, em_history=[]))
 

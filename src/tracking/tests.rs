@@ -1089,3 +1089,50 @@ fn over_relaxed_em_reaches_plain_ems_fit_in_fewer_e_steps() {
     assert!(rel(&over.params.vx, &long.params.vx) < 0.02);
     assert!(rel(&over.params.vz[..1], &long.params.vz[..1]) < 0.02);
 }
+
+#[test]
+fn the_log_likelihood_stop_ends_on_a_plain_step() {
+    let it = |ll: f64, step: f64, rejected: bool| Iteration {
+        iteration: 0,
+        delta: 0.0,
+        seconds: 0.0,
+        stats: FilterStats {
+            used: 1000,
+            log_lik: ll,
+            ..FilterStats::default()
+        },
+        step,
+        rejected,
+    };
+    let tol = 1e-3; // 1 nat for 1,000 entries
+                    // an over-relaxed step that gained little: not a stop, but the next step is plain
+    let mut h = vec![
+        it(0.0, 1.0, false),
+        it(500.0, 1.5, false),
+        it(500.5, 2.25, false),
+    ];
+    assert!(!super::ll_settled(&h, tol));
+    assert!(super::overrelaxed_settled(&h, tol));
+    // then a small plain change: two small changes in a row, the last a plain step's
+    let mut settled = h.clone();
+    settled.push(it(500.9, 1.0, false));
+    assert!(super::ll_settled(&settled, tol) && !super::overrelaxed_settled(&settled, tol));
+    // a rejected step in between does not count; a large change before the plain one does
+    h.push(it(400.0, 3.375, true));
+    h.push(it(500.9, 1.0, false));
+    assert!(super::ll_settled(&h, tol));
+    let h = vec![
+        it(0.0, 1.0, false),
+        it(500.0, 1.5, false),
+        it(510.0, 2.25, false),
+        it(510.5, 1.0, false),
+    ];
+    assert!(!super::ll_settled(&h, tol));
+    // a large over-relaxed gain is not settling
+    let h = vec![
+        it(0.0, 1.0, false),
+        it(500.0, 1.5, false),
+        it(510.0, 2.25, false),
+    ];
+    assert!(!super::overrelaxed_settled(&h, tol));
+}

@@ -412,18 +412,23 @@ def skeleton_snapshots(result: PoseResult, frames: Sequence[int] | None = None) 
 
 # -- 5. EM convergence -------------------------------------------------------------------------
 def em_convergence(result: PoseResult) -> Figure:
-    """EM progress: relative change Δ per iteration (log axis) and wall time per iteration.
+    """EM progress: what the stop rule watched per iteration, and wall time per iteration.
 
     Parameters
     ----------
     result : PoseResult
-        Uses ``em_history`` (``iteration``, ``delta``, ``seconds``) and ``info["tol"]``.
+        Uses ``em_history`` (``iteration``, ``seconds``; ``log_likelihood`` and ``rejected``
+        under the default ``stop="loglik"``, else ``delta``) and ``info["stop"]``,
+        ``info["tol"]``.
 
     Returns
     -------
     matplotlib.figure.Figure
-        Two axes: Δ with the tolerance as a dashed horizontal line (``lines[0]`` holds one point
-        per iteration), and seconds per iteration as bars.
+        Two axes. Under ``stop="loglik"`` (with the log-likelihoods in the history): the
+        marginal log-likelihood (nats) of each iteration kept (``lines[0]``) and, as red
+        crosses, the over-relaxed steps replaced by the plain one (``lines[1]``, if any).
+        Otherwise Alg. 13's Δ (log axis, ``lines[0]``, one point per iteration) with the
+        tolerance as a dashed line. Then seconds per iteration as bars.
 
     Raises
     ------
@@ -437,13 +442,22 @@ def em_convergence(result: PoseResult) -> Figure:
     delta = np.array([h["delta"] for h in result.em_history], dtype=float)
     secs = np.array([h["seconds"] for h in result.em_history], dtype=float)
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
-    ax1.plot(it, delta, "o-", color="tab:blue", label="Δ (mean relative change)")
-    tol = result.info.get("tol")
-    if tol is not None:
-        ax1.axhline(tol, color="tab:red", ls="--", label=f"tolerance {tol:g}")
-    ax1.set_yscale("log")
+    hist = result.em_history
+    if result.info.get("stop", "loglik") == "loglik" and all("log_likelihood" in h for h in hist):
+        ll = np.array([h["log_likelihood"] for h in hist], dtype=float)
+        rej = np.array([bool(h.get("rejected")) for h in hist])
+        ax1.plot(it[~rej], ll[~rej], "o-", color="tab:blue", label="marginal log-likelihood")
+        if rej.any():
+            ax1.plot(it[rej], ll[rej], "x", color="tab:red", label="over-relaxed step, replaced")
+        ax1.set_ylabel("log-likelihood (nats)")
+    else:
+        ax1.plot(it, delta, "o-", color="tab:blue", label="Δ (mean relative change)")
+        tol = result.info.get("tol")
+        if tol is not None:
+            ax1.axhline(tol, color="tab:red", ls="--", label=f"tolerance {tol:g}")
+        ax1.set_yscale("log")
+        ax1.set_ylabel("Δ")
     ax1.set_xlabel("EM iteration")
-    ax1.set_ylabel("Δ")
     state = "converged" if result.info.get("converged") else "not converged"
     ax1.set_title(f"convergence ({state})")
     ax1.legend(fontsize=8)

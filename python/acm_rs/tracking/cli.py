@@ -94,6 +94,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     res = track(
         rig, skeleton, points, method=args.method, progress=None, motion=args.motion,
         noise_model=args.noise_model, second_solutions=args.second_solutions, **opts,
+        **({} if args.overrelax is None else {"overrelax": args.overrelax or None}),
     )  # fmt: skip
     res.info["frames"] = ls.frames[sel]
     if res.info.get("interrupted"):
@@ -297,6 +298,11 @@ def add_subcommands(sub) -> None:
     p.add_argument("--ll-tol", type=float, default=1e-3,
                    help="nats per measurement entry for --stop loglik (1e-3)")  # fmt: skip
     p.add_argument("--tol", type=float, default=0.05, help="EM tolerance of Alg. 13 (0.05)")
+    p.add_argument(
+        "--overrelax", type=float, default=None, metavar="A",
+        help="growth factor > 1 of over-relaxed EM (default: acm_rs.track's); 0: plain EM "
+        "(Alg. 11)",
+    )  # fmt: skip
     p.add_argument("--gate", type=float, default=0.999, help="outlier gate probability (0.999)")
     p.add_argument("--no-gate", action="store_true", help="use every confident detection")
     p.add_argument("--no-limits", action="store_true", help="do not enforce joint-angle limits")

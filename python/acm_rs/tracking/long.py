@@ -171,8 +171,9 @@ def _em_windows(
     times the M-step's change (``_native.extrapolate_params``; the shared ``V_z``, ``V_x``
     alike in every window), ``η`` growing by this factor while the summed log-likelihood
     does not fall below the point the step came from; a step that falls is replaced by the
-    plain M-step, and the stop compares a change after a step of factor ``η`` with
-    ``η · ll_tol``."""
+    plain M-step. Only plain steps' changes decide the stop; an over-relaxed step of factor
+    ``η`` that changed the log-likelihood by less than ``η · ll_tol`` per entry makes the next
+    step plain."""
     params = list(inits)
     history: list[dict] = []
     converged = False
@@ -224,17 +225,22 @@ def _em_windows(
         })  # fmt: skip
         printer(it, delta, seconds, tot)
         held = [h for h in history if not h["rejected"]]
+        # a plain step's change decides the stop; a small one after an over-relaxed step of
+        # factor η (below η · ll_tol: it may have passed the maximum along its direction)
+        # makes the next step plain (as Tracker::run_em, ll_settled / overrelaxed_settled)
+        small_far = False
         if len(held) > 1:
             gain = abs(held[-1]["log_likelihood"] - held[-2]["log_likelihood"])
-            if gain < step * ll_tol * max(tot["used"], 1):
+            if step <= 1.0 and gain < ll_tol * max(tot["used"], 1):
                 params = nxt
                 converged = True
                 break
+            small_far = step > 1.0 and gain < step * ll_tol * max(tot["used"], 1)
         if best is not None and it >= best[1] + EM_PATIENCE:
             params = nxt
             break
         params, step = nxt, 1.0
-        if overrelax is not None and np.isfinite(ll):
+        if overrelax is not None and np.isfinite(ll) and not small_far:
             grown = min(eta * overrelax, MAX_OVERRELAX) if history[-1]["step"] > 1.0 else overrelax
             far = [_extrapolate(p, q, grown) for p, q in zip(evaluated, nxt, strict=True)]
             if all(f is not None for f in far):

@@ -17,12 +17,25 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..state import StateMap
 
 
-def em_history(delta: np.ndarray, seconds: np.ndarray) -> list[dict]:
-    """``em_history`` records from stored per-iteration Δ and wall times."""
-    return [
+def em_history(delta: np.ndarray, seconds: np.ndarray, stored=None) -> list[dict]:
+    """``em_history`` records from stored per-iteration Δ and wall times, and from
+    ``stored`` (a mapping such as the loaded NPZ) the log-likelihood, the over-relaxed step
+    factor and whether the step was rejected where the file has them (``em_log_likelihood``,
+    ``em_step``, ``em_rejected``; files before them have Δ and times only)."""
+    out = [
         {"iteration": i + 1, "delta": float(a), "seconds": float(b)}
         for i, (a, b) in enumerate(zip(delta, seconds, strict=True))
     ]
+    stored = {} if stored is None else stored
+    for key, name, kind in (
+        ("em_log_likelihood", "log_likelihood", float),
+        ("em_step", "step", float),
+        ("em_rejected", "rejected", bool),
+    ):
+        if key in stored and len(stored[key]) == len(out):
+            for h, v in zip(out, stored[key], strict=True):
+                h[name] = kind(v)
+    return out
 
 
 @dataclass
@@ -226,7 +239,7 @@ class PoseResult:
         sm = StateMap(
             skeleton, norm, bool(info.get("joint_limits", True)), stretch=bool(info.get("elastic"))
         )
-        history = em_history(d["em_delta"], d["em_seconds"])
+        history = em_history(d["em_delta"], d["em_seconds"], d)
         return cls(
             skeleton=skeleton, rig=rig, state_map=sm, joints=d["joints"],
             joints_std=d["joints_std"], markers=d["markers"], t=d["t"], r=d["r"],

@@ -129,7 +129,8 @@ def to_npz(
     ``marker_variance``), ``t`` (T, 3), ``r`` (T, n_bones, 3) rad, ``state_mean`` (T, n),
     ``state_cov`` (T, n, n) if present, ``detections`` (n_cams, T, M, 2) px, ``frames`` (T,),
     ``joint_names``, ``marker_names``, ``camera_names``, ``camera_params`` (n_cams, 16,
-    :data:`acm_rs.PARAM_NAMES` order), ``em_delta``, ``em_seconds``; text: ``units``,
+    :data:`acm_rs.PARAM_NAMES` order), ``em_delta``, ``em_seconds``, ``em_log_likelihood``,
+    ``em_step`` (over-relaxation factor, 1: plain EM), ``em_rejected``; text: ``units``,
     ``skeleton_toml`` (load with ``Skeleton.from_dict(tomllib.loads(...))``),
     ``calibration_toml`` (anipose), ``info_json``; ``format`` and ``version``; the arrays of
     ``info`` as ``param__<name>`` (learned ``mu0``, ``V0``, ``Vz``, ``Vx_diag``) and
@@ -173,6 +174,11 @@ def to_npz(
         "camera_params": result.rig.get_params(),
         "em_delta": np.array([h.get("delta", np.nan) for h in result.em_history], float),
         "em_seconds": np.array([h.get("seconds", np.nan) for h in result.em_history], float),
+        "em_log_likelihood": np.array(
+            [h.get("log_likelihood", np.nan) for h in result.em_history], float
+        ),
+        "em_step": np.array([h.get("step", 1.0) for h in result.em_history], float),
+        "em_rejected": np.array([bool(h.get("rejected")) for h in result.em_history], bool),
         "skeleton_toml": np.array(_toml.dumps(sk.to_dict())),
         "calibration_toml": np.array(_calibration_toml(result.rig)),
         "info_json": np.array(json.dumps(_jsonable(info))),
