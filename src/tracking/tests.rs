@@ -918,9 +918,9 @@ fn em_returns_the_best_parameters_it_evaluated() {
     assert_eq!(tr3.means(), tr.means());
 }
 
-#[test]
-fn the_log_likelihood_stop_needs_two_small_changes() {
-    let it = |ll: f64| Iteration {
+/// An EM history entry with this log-likelihood over 1,000 used entries.
+fn iteration(ll: f64, step: f64, rejected: bool) -> Iteration {
+    Iteration {
         iteration: 0,
         delta: 0.0,
         seconds: 0.0,
@@ -929,9 +929,14 @@ fn the_log_likelihood_stop_needs_two_small_changes() {
             log_lik: ll,
             ..FilterStats::default()
         },
-        step: 1.0,
-        rejected: false,
-    };
+        step,
+        rejected,
+    }
+}
+
+#[test]
+fn the_log_likelihood_stop_needs_two_small_changes() {
+    let it = |ll: f64| iteration(ll, 1.0, false);
     let tol = 1e-3; // 1 nat for 1,000 entries
     let h: Vec<Iteration> = [0.0, 500.0, 500.5].map(it).to_vec();
     assert!(
@@ -1092,18 +1097,7 @@ fn over_relaxed_em_reaches_plain_ems_fit_in_fewer_e_steps() {
 
 #[test]
 fn the_log_likelihood_stop_ends_on_a_plain_step() {
-    let it = |ll: f64, step: f64, rejected: bool| Iteration {
-        iteration: 0,
-        delta: 0.0,
-        seconds: 0.0,
-        stats: FilterStats {
-            used: 1000,
-            log_lik: ll,
-            ..FilterStats::default()
-        },
-        step,
-        rejected,
-    };
+    let it = iteration;
     let tol = 1e-3; // 1 nat for 1,000 entries
                     // an over-relaxed step that gained little: not a stop, but the next step is plain
     let mut h = vec![
