@@ -61,3 +61,5 @@ def test_the_bounded_memory_paths_windows_over_relax_too(session):
     assert steps[0] == 1.0 and max(steps) > 1.0
     best = max(h["log_likelihood"] for h in over.em_history)
     assert best >= max(h["log_likelihood"] for h in plain.em_history) - 1.0
+    with pytest.raises(ValueError, match="overrelax"):
+        acm_rs.track(rig, sk, det, overrelax=0.5, max_iter=2, **kw)

@@ -76,6 +76,7 @@ from .track import (
     _velocity_init,
     _velocity_worse,
     check_camera_order,
+    check_overrelax,
     default_normalization,
     gate_threshold,
     initial_vx,
@@ -347,6 +348,7 @@ def learn_windows(
     """
     if motion not in MOTION_ORDER:
         raise ValueError(f"motion must be one of {sorted(MOTION_ORDER)}, got {motion!r}")
+    check_overrelax(overrelax)
     t_start = time.perf_counter()
     sm = StateMap(skeleton, norm, joint_limits)
     n = sm.n_state

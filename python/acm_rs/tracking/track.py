@@ -513,6 +513,12 @@ def warn_second_solutions(result: PoseResult, frames: int) -> None:
         )
 
 
+def check_overrelax(overrelax: float | None) -> None:
+    """Refuse an over-relaxation growth factor that is not a finite number > 1 (or None)."""
+    if overrelax is not None and not (math.isfinite(overrelax) and overrelax > 1):
+        raise ValueError(f"overrelax must be a growth factor > 1 or None, got {overrelax}")
+
+
 def _warn_em(result: PoseResult, max_iter: int, ll_tol: float) -> None:
     """Say when EM ended at ``max_iter`` without converging, when ``EM_PATIENCE`` iterations
     in a row stayed below its best log-likelihood, and when its marginal
@@ -740,8 +746,7 @@ def track_in_memory(
         raise ValueError(f"misfit must be one of {MISFIT_MODES}, got {misfit!r}")
     if int(relinearize) != relinearize or relinearize < 0:
         raise ValueError(f"relinearize must be an integer >= 0, got {relinearize}")
-    if overrelax is not None and not (math.isfinite(overrelax) and overrelax > 1):
-        raise ValueError(f"overrelax must be a growth factor > 1 or None, got {overrelax}")
+    check_overrelax(overrelax)
     det = _measurements(rig, skeleton, detections, likelihood, pcutoff, marker_names)
     n_frames = det.shape[1]
     norm = normalization or default_normalization(rig, skeleton)
