@@ -63,3 +63,21 @@ def test_the_bounded_memory_paths_windows_over_relax_too(session):
     assert best >= max(h["log_likelihood"] for h in plain.em_history) - 1.0
     with pytest.raises(ValueError, match="overrelax"):
         acm_rs.track(rig, sk, det, overrelax=0.5, max_iter=2, **kw)
+
+
+def test_the_native_extrapolation_checks_its_inputs():
+    from acm_rs import _native
+
+    a = (np.zeros(2), np.eye(2), 2 * np.eye(2), np.ones(3))
+    b = (np.ones(2), 2 * np.eye(2), 4 * np.eye(2), 2 * np.ones(3))
+    mu0, v0, vz, vx = _native.extrapolate_params(a, b, 2.0)
+    # η = 2 in closed form: 2b − a, B A⁻¹ B, b² / a
+    np.testing.assert_allclose(mu0, [2.0, 2.0])
+    np.testing.assert_allclose(vz, 8 * np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(v0, 4 * np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(vx, 4 * np.ones(3))
+    assert _native.extrapolate_params(a, (b[0], -np.eye(2), b[2], b[3]), 2.0) is None
+    with pytest.raises(ValueError, match="mu0 must have shape"):
+        _native.extrapolate_params(a, (np.ones(3), *b[1:]), 2.0)
+    with pytest.raises(ValueError, match="eta must be finite"):
+        _native.extrapolate_params(a, b, float("nan"))
