@@ -5,13 +5,14 @@ its mirror position lies at twice its distance from that axis (computed here wit
 with the product's forward kinematics).
 """
 
+import dataclasses
 import warnings
 
 import numpy as np
 import pytest
 
 import acm_rs
-from acm_rs.tracking.ambiguity import search
+from acm_rs.tracking.ambiguity import search, widen
 
 NAMES = ["pelvis", "hip", "knee", "ankle", "toe"]
 PARENTS = [-1, 0, 1, 2, 3]
@@ -107,20 +108,26 @@ def test_bad_bounds_are_refused():
         search(sk, REST[:1], r, marker_std=np.nan)
 
 
-def test_track_names_the_joint_its_markers_leave_open():
+def leg_recording(sk: acm_rs.Skeleton, n: int = 30):
+    """The demo rig and a small swing of ``sk`` seen through it (0.5 px noise), the first 10
+    frames without detections."""
     from acm_rs.demo import demo_rig
 
     rig = demo_rig()
     rng = np.random.default_rng(3)
+    r = 0.05 * np.sin(np.linspace(0, 3, n))[:, None, None] * rng.normal(size=(1, sk.n_bones, 3))
+    t = np.tile(REST[0], (n, 1))
+    _, markers = sk.forward(t, r)
+    det = rig.project(markers) + rng.normal(scale=0.5, size=(len(rig), n, sk.n_markers, 2))
+    det[:, :10] = np.nan  # the search keeps to frames with detections
+    return rig, det
+
+
+def test_track_names_the_joint_its_markers_leave_open():
     results = {}
     for knee_marker in (False, True):
         sk = leg(knee_marker)
-        n = 30
-        r = 0.05 * np.sin(np.linspace(0, 3, n))[:, None, None] * rng.normal(size=(1, sk.n_bones, 3))
-        t = np.tile(REST[0], (n, 1))
-        _, markers = sk.forward(t, r)
-        det = rig.project(markers) + rng.normal(scale=0.5, size=(len(rig), n, sk.n_markers, 2))
-        det[:, :10] = np.nan  # the search keeps to frames with detections
+        rig, det = leg_recording(sk)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res = acm_rs.track(rig, sk, det, max_iter=5, second_solutions=2, misfit="off")
@@ -130,9 +137,54 @@ def test_track_names_the_joint_its_markers_leave_open():
             res_open = res
     found, said = results[False]
     assert "knee" in found["joints"] and found["frames"] == [15, 25]
-    assert len(said) == 1 and "knee" in said[0]
+    assert len(said) == 1 and "knee" in said[0] and "widened" in said[0]
     assert "do not decide" in res_open.summary() and "knee" in res_open.summary()
     found, said = results[True]
     assert found["joints"] == {} and said == []
     with pytest.raises(ValueError, match="second_solutions"):
         acm_rs.track(rig, sk, det, second_solutions=-1)
+
+
+def test_the_widening_is_sqrt_f_times_the_distance_over_1_96():
+    sk = leg(knee_marker=False)
+    d = mirror_distance(*REST[1:4])
+    # two frames of the same pose; in the second the knee's SD already holds the mirror pose
+    std = np.zeros((2, len(NAMES), 3))
+    std[1, NAMES.index("knee")] = d
+    found = search(sk, REST[[0, 0]], np.zeros((2, sk.n_bones, 3)), marker_std=1e-5, joints_std=std)
+    expected = np.zeros(len(NAMES))
+    expected[NAMES.index("knee")] = np.sqrt(0.5) * d / 1.96
+    np.testing.assert_allclose(found.widening(), expected, rtol=1e-5)
+
+
+def test_track_widens_the_open_joint_by_what_the_search_found_and_nothing_else():
+    sk = leg(knee_marker=False)
+    rig, det = leg_recording(sk)
+    knee = NAMES.index("knee")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = acm_rs.track(rig, sk, det, max_iter=5, second_solutions=0, misfit="off")
+        res = acm_rs.track(rig, sk, det, max_iter=5, second_solutions=2, misfit="off")
+    assert "joints_std_widening" not in plain.info
+    added = res.info["joints_std_widening"]
+    found = res.info["second_solutions"]["joints"]["knee"]
+    assert added[knee] == pytest.approx(np.sqrt(found["fraction"]) * found["distance"] / 1.96)
+    assert found["widened_sd"] == pytest.approx(added[knee])
+    assert np.count_nonzero(added) == 1
+    # the same EM, the same Gaussian posterior: only the knee's SDs grow, by exactly `added`
+    np.testing.assert_allclose(res.joints, plain.joints)
+    expected = np.sqrt(plain.joints_std**2 + added[None, :, None] ** 2)
+    np.testing.assert_allclose(res.joints_std, expected, rtol=1e-12)
+    # the search found the mirror pose in both frames: the 95 % interval about the tracked knee
+    # reaches it in every frame
+    assert found["fraction"] == 1.0
+    assert (1.96 * res.joints_std[:, knee] >= found["distance"] * (1 - 1e-9)).all()
+    # a second search replaces the widening rather than adding to it
+    again = acm_rs.second_solutions(res, frames=[15, 25])
+    widen(res, again)
+    np.testing.assert_allclose(
+        res.joints_std, np.sqrt(plain.joints_std**2 + again.widening()[None, :, None] ** 2)
+    )
+    renamed = dataclasses.replace(again, joint_names=tuple(n + "_" for n in NAMES))
+    with pytest.raises(ValueError, match="another skeleton"):
+        widen(res, renamed)

@@ -9,13 +9,22 @@ states a joint SD that does not cover the other. :func:`second_solutions` search
 poses at a sample of frames so that a user learns which joints the markers do not decide.
 
 The search, per frame and per joint ``b`` with parent ``a`` and one child ``c``: rotate
-``b`` by pi about the axis ``a -> c``; fit the pose (the free entries of the result's state
-map) to the frame's forward-kinematics markers plus those swung joints (Levenberg-Marquardt
+``b`` by pi about the axis ``a -> c``; fit the rotations of the bones from ``a -> b`` down
+(those of the free entries of the result's state map) to the frame's forward-kinematics
+markers plus the swung joint (Levenberg-Marquardt
 with the exact Jacobians of Alg. 1); then fit the markers alone from there, each marker
 coordinate weighted by its posterior SD. A pose whose markers differ from the tracked pose's
 by ``Δχ² = Σ (Δm / σ_m)² ≤ chi2`` (default 4: a likelihood ratio of at least e⁻² in the
 markers' own uncertainty), inside the joint limits when the result enforced them, and that
 moves some joint beyond its own 95 % interval is a second solution.
+
+:func:`widen` then makes the joints' SDs honest about what the search found. A joint with a
+second pose at distance ``D`` in a fraction ``f`` of the searched frames gets the variance
+``f (D / 1.96)²`` added to each coordinate in every frame: where the search found a second
+pose (``f = 1``), the 95 % interval about the tracked joint reaches it, as a 95 % region of a
+posterior with two poses of comparable likelihood must (``Δχ² ≤ 4`` is a likelihood ratio of
+at least e⁻²). ``D`` is the median over the frames where one was found; frames between the
+searched ones get the same widening, an approximation that the search's frame count sets.
 """
 
 from __future__ import annotations
@@ -73,6 +82,17 @@ class SecondSolutions:
         ]
         return sorted(rows, key=lambda row: (-row[1], -row[2]))
 
+    def widening(self) -> np.ndarray:
+        """SD to add to each coordinate of each joint, shape (J,) (world units; 0 for the
+        joints without a second pose): ``sqrt(f) D / 1.96`` with ``f`` the fraction of the
+        searched frames with a second pose and ``D`` its median distance there."""
+        found = np.isfinite(self.distance)
+        out = np.zeros(len(self.joint_names))
+        for j in np.flatnonzero(found.any(axis=0)):
+            frac = found[:, j].mean()
+            out[j] = np.sqrt(frac) * np.median(self.distance[found[:, j], j]) / 1.96
+        return out
+
     def summary(self) -> str:
         """One line naming the ambiguous joints (or saying there are none)."""
         rows = self.ambiguous()
@@ -87,10 +107,37 @@ class SecondSolutions:
         )
         return (
             f"the markers do not decide these joints: a second pose fits them within Δχ² "
-            f"{self.chi2:g} (their posterior SDs) with the joint elsewhere: {parts}; the "
-            "joints' SDs describe one of the poses only (joint limits or more markers away "
-            "from the joints' axes decide them)"
+            f"{self.chi2:g} (their posterior SDs) with the joint elsewhere: {parts} (joint "
+            "limits or more markers away from the joints' axes decide them)"
         )
+
+
+def widen(result: PoseResult, found: SecondSolutions) -> np.ndarray:
+    """Widen ``result.joints_std`` by what ``found`` says the markers leave open (see the
+    module docstring), in place of an earlier widening of the same result.
+
+    Parameters
+    ----------
+    result : PoseResult
+        Its ``joints_std`` (T, J, 3) is replaced; ``info["joints_std_widening"]`` (J,) records
+        the SD added (world units), so that ``sqrt(joints_std² − widening²)`` is the Gaussian
+        posterior's SD.
+    found : SecondSolutions
+        A search of this result (:func:`second_solutions`).
+
+    Returns
+    -------
+    numpy.ndarray, shape (J,)
+        The SD added to each joint's coordinates (world units).
+    """
+    if tuple(found.joint_names) != tuple(result.joint_names):
+        raise ValueError("the search is of another skeleton than the result's")
+    added = found.widening()
+    before = np.asarray(result.info.get("joints_std_widening", np.zeros_like(added)))
+    var = result.joints_std**2 + (added**2 - before**2)[None, :, None]
+    result.joints_std = np.sqrt(np.maximum(var, 0.0))
+    result.info["joints_std_widening"] = added
+    return added
 
 
 def _swivel(points: np.ndarray, a: int, b: int, c: int, angle: float) -> np.ndarray:
@@ -284,9 +331,12 @@ def search(
         if parents[b] < 0 or len(children[b]) != 1:
             continue
         a = int(parents[b])
-        # The swing moves the subtree of ``a``: refit the rotations of the bones ending in it
-        # (the bone ending at ``a`` included), the rest of the pose stays.
-        inside = _subtree(children, a)
+        # The swing moves ``b`` and its subtree: refit the rotations of the bones ending in it
+        # (``a -> b`` and below). Each rotation is relative to its parent's frame (Alg. 1), so
+        # the rest of the pose, ``b``'s siblings included, stays. (Session 22 refit ``a``'s
+        # whole subtree: 81-84 entries for a shoulder or the spine, 2.4 x the search's time
+        # for the same coverage, docs/tracking.md.)
+        inside = _subtree(children, b)
         entries = np.array([3 + 3 * k + i for k in range(len(bones)) if bones[k, 1] in inside
                             for i in range(3)], dtype=np.int64)  # fmt: skip
         local = np.intersect1d(free, entries)

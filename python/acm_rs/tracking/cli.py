@@ -327,9 +327,10 @@ def add_subcommands(sub) -> None:
     p.add_argument("--rate", type=float, help="frame rate (Hz) for NWB/C3D/movement exports")
     p.add_argument("--plots", help="folder for the tracking figures")
     p.add_argument("--bundle", action="store_true", help="only write OUT.bundle.npz for acm-smooth")
-    p.add_argument("--second-solutions", type=int, default=1, metavar="N",
-                   help="search N frames for second poses that fit the markers as well and "
-                   "name the joints the markers leave ambiguous (1; 0: skip)")  # fmt: skip
+    p.add_argument("--second-solutions", type=int, default=3, metavar="N",
+                   help="search N frames for second poses that fit the markers as well, name "
+                   "the joints the markers leave ambiguous and widen their SDs to reach the "
+                   "second poses (3; 0: skip)")  # fmt: skip
     p.add_argument("-o", "--output", help="output prefix, e.g. out/session1")
     p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
     add_project_option(p, "track")

@@ -51,6 +51,9 @@ class PoseResult:
     joints_std : numpy.ndarray, shape (T, J, 3)
         Posterior standard deviation of each joint coordinate (unscented transform of the
         state posterior through forward kinematics); zeros for ``method="deterministic"``.
+        For joints whose markers leave a second pose open (``track(second_solutions=)``),
+        widened to reach it: ``info["joints_std_widening"]`` (J,) is the SD added
+        (:func:`acm_rs.tracking.ambiguity.widen`).
     markers : numpy.ndarray, shape (T, M, 3)
         Marker positions: the posterior mean of the true markers, forward kinematics of the
         mean pose plus the estimated model misfit ``δ̂`` (``track(misfit=...)``,
