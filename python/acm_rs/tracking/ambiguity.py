@@ -211,7 +211,7 @@ def second_solutions(
     frames : int or array_like of int
         The number of frames to search, evenly spread over the frames with at least the
         median number of detections, or the frames themselves. Each frame costs two small
-        least-squares fits per joint with one child (~0.07 s for the bundled rat, ~0.5 s for
+        least-squares fits per joint with one child (~0.07 s for the bundled rat, ~0.2 s for
         a 29-joint skeleton without joint limits).
     chi2 : float
         Bound on ``Σ (Δm / σ_m)²`` over the marker coordinates (σ: the posterior SDs of the

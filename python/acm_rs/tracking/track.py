@@ -699,7 +699,7 @@ def track_in_memory(
         Default 3 frames (1 frame left the real-motion cases at 81-86 % joint coverage, 3
         at 91-93 %, ``docs/tracking.md``). 0: no search, the Gaussian posterior's SDs.
         :func:`acm_rs.track` runs it on the bounded-memory path too.
-        Cost per frame: ~0.07 s for the bundled rat, ~0.4 s for a 29-joint skeleton without
+        Cost per frame: ~0.07 s for the bundled rat, ~0.2 s for a 29-joint skeleton without
         joint limits.
     progress : bool or None
         Print one line per EM iteration and a summary to stderr; None: only when stderr is
