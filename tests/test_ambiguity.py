@@ -188,3 +188,18 @@ def test_track_widens_the_open_joint_by_what_the_search_found_and_nothing_else()
     renamed = dataclasses.replace(again, joint_names=tuple(n + "_" for n in NAMES))
     with pytest.raises(ValueError, match="another skeleton"):
         widen(res, renamed)
+
+
+def test_the_bounded_memory_path_widens_the_open_joint_too():
+    sk = leg(knee_marker=False)
+    rig, det = leg_recording(sk, n=60)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = acm_rs.track(rig, sk, det, max_iter=5, second_solutions=2, memory_limit=1e5)
+    assert res.info["bounded_memory"]
+    found = res.info["second_solutions"]["joints"]
+    assert list(found) == ["knee"] and found["knee"]["fraction"] == 1.0
+    added = res.info["joints_std_widening"]
+    assert np.flatnonzero(added).tolist() == [NAMES.index("knee")]
+    knee_sd = res.joints_std[:, NAMES.index("knee")]
+    assert (1.96 * knee_sd >= found["knee"]["distance"] * (1 - 1e-9)).all()
