@@ -197,6 +197,22 @@ fn case(c: &mut Criterion, name: &str, em: &SkeletonEmission) {
             assert!(cholesky_in_place(black_box(&mut l), 2 * n));
         })
     });
+    // the 87-entry skeleton's `M = I + ỸᵀỸ` (174 × 174) and its prediction (87 × 87)
+    for size in [87usize, 174] {
+        let y = pseudo_random(size * 300, 9);
+        let mut spd = vec![0.0; size * size];
+        dense::add_gram_rows(&y, size, 300, &mut spd, false);
+        for i in 0..size {
+            spd[i * (size + 1)] += 1.0;
+        }
+        let mut l = spd.clone();
+        group.bench_function(format!("cholesky_{size}"), |b| {
+            b.iter(|| {
+                l.copy_from_slice(&spd);
+                assert!(cholesky_in_place(black_box(&mut l), size));
+            })
+        });
+    }
     group.finish();
 }
 

@@ -33,39 +33,71 @@ macro_rules! dispatch {
 }
 pub(crate) use dispatch;
 
-dispatch!(
-    /// In-place lower Cholesky factor of the column-major `n × n` matrix `a` (left-looking,
-    /// column axpys; only the lower triangle is read, the upper one is zeroed); `false` if `a` is
-    /// not positive definite.
-    ///
-    /// Four earlier columns are applied per pass over column `j` (one load and store of each
-    /// entry for four multiply-subtracts instead of four: 1.6-2× at n = 100-174), each entry
-    /// still updated in column order, so the factor is the one-column-at-a-time one bit for
-    /// bit.
-    pub fn cholesky_in_place(a: &mut [f64], n: usize) -> bool {
-        for j in 0..n {
-            let (done, rest) = a.split_at_mut(j * n);
-            let cj = &mut rest[..n];
-            let mut p = 0;
-            while p + 4 <= j {
-                let c0 = &done[p * n + j..(p + 1) * n];
-                let c1 = &done[(p + 1) * n + j..(p + 2) * n];
-                let c2 = &done[(p + 2) * n + j..(p + 3) * n];
-                let c3 = &done[(p + 3) * n + j..(p + 4) * n];
-                let f = [c0[0], c1[0], c2[0], c3[0]];
-                let rows = cj[j..].iter_mut().zip(c0).zip(c1).zip(c2).zip(c3);
-                for ((((x, y0), y1), y2), y3) in rows {
-                    *x = (((*x - f[0] * y0) - f[1] * y1) - f[2] * y2) - f[3] * y3;
-                }
-                p += 4;
+/// In-place lower Cholesky factor of the column-major `n × n` matrix `a` (left-looking;
+/// only the lower triangle is read, the upper one is zeroed); `false` if `a` is not positive
+/// definite.
+///
+/// Columns are computed four at a time: a register tile of rows × 4 columns (16 rows with
+/// AVX-512, 8 with AVX2, then 4 and 1 for the last rows) is held while every earlier column
+/// is subtracted from it (each earlier column's entries loaded once for the four columns);
+/// then the four columns are finished among themselves. Each entry is still updated column
+/// by column in order, with a separate multiply and subtract, so the factor is the
+/// one-column-at-a-time one bit for bit on every path (`tests`). The 174 × 174 factor of the
+/// 87-entry skeleton's update: 224 → 91 µs, the 87 × 87 one 25 → 17 µs (criterion,
+/// `benches/README.md`).
+pub fn cholesky_in_place(a: &mut [f64], n: usize) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if is_x86_feature_detected!("avx512f") {
+            // SAFETY: the CPU supports the enabled features (checked above).
+            return unsafe { cholesky_avx512(a, n) };
+        }
+        if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+            // SAFETY: as above.
+            return unsafe { cholesky_avx2(a, n) };
+        }
+    }
+    cholesky_tiled::<8>(a, n)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+unsafe fn cholesky_avx512(a: &mut [f64], n: usize) -> bool {
+    cholesky_tiled::<16>(a, n)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn cholesky_avx2(a: &mut [f64], n: usize) -> bool {
+    cholesky_tiled::<8>(a, n)
+}
+
+/// [`cholesky_in_place`] with register tiles of `R` rows.
+#[inline(always)]
+fn cholesky_tiled<const R: usize>(a: &mut [f64], n: usize) -> bool {
+    let mut j0 = 0;
+    while j0 < n {
+        let b = 4.min(n - j0);
+        // 1. columns j0..j0 + b minus the columns p < j0, in order (the rows above a column's
+        //    diagonal are computed too, and zeroed in 2.)
+        let (done, rest) = a.split_at_mut(j0 * n);
+        if j0 > 0 {
+            match b {
+                4 => cholesky_rows::<R, 4>(done, rest, n, j0),
+                3 => cholesky_rows::<R, 3>(done, rest, n, j0),
+                2 => cholesky_rows::<R, 2>(done, rest, n, j0),
+                _ => cholesky_rows::<R, 1>(done, rest, n, j0),
             }
-            for p in p..j {
-                let cp = &done[p * n..(p + 1) * n];
+        }
+        // 2. the block's own columns, one after the other
+        for k in 0..b {
+            let j = j0 + k;
+            let (left, cj) = rest.split_at_mut(k * n);
+            let cj = &mut cj[..n];
+            for cp in left.chunks_exact(n) {
                 let f = cp[j];
-                if f != 0.0 {
-                    for (x, y) in cj[j..].iter_mut().zip(&cp[j..]) {
-                        *x -= f * y;
-                    }
+                for (x, y) in cj[j..].iter_mut().zip(&cp[j..]) {
+                    *x -= f * y;
                 }
             }
             let djj = cj[j];
@@ -78,9 +110,64 @@ dispatch!(
             cj[j + 1..].iter_mut().for_each(|x| *x *= inv);
             cj[..j].iter_mut().for_each(|x| *x = 0.0);
         }
-        true
+        j0 += b;
     }
-);
+    true
+}
+
+/// Rows `j0..n` of the `C` columns at the start of `rest` minus the columns of `done`
+/// (`j0` columns of `n`), by tiles of `R`, 4 and 1 rows.
+#[inline(always)]
+fn cholesky_rows<const R: usize, const C: usize>(
+    done: &[f64],
+    rest: &mut [f64],
+    n: usize,
+    j0: usize,
+) {
+    let mut i = j0;
+    while i + R <= n {
+        cholesky_tile::<R, C>(done, rest, n, j0, i);
+        i += R;
+    }
+    while i + 4 <= n {
+        cholesky_tile::<4, C>(done, rest, n, j0, i);
+        i += 4;
+    }
+    while i < n {
+        cholesky_tile::<1, C>(done, rest, n, j0, i);
+        i += 1;
+    }
+}
+
+/// Rows `i..i + R` of the `C` columns at the start of `rest` minus every column of `done`,
+/// in order, held in registers.
+#[inline(always)]
+fn cholesky_tile<const R: usize, const C: usize>(
+    done: &[f64],
+    rest: &mut [f64],
+    n: usize,
+    j0: usize,
+    i: usize,
+) {
+    let mut acc = [[0.0; R]; C];
+    for (k, row) in acc.iter_mut().enumerate() {
+        row.copy_from_slice(&rest[k * n + i..k * n + i + R]);
+    }
+    for col in done.chunks_exact(n) {
+        let mut f = [0.0; C];
+        f.copy_from_slice(&col[j0..j0 + C]);
+        let mut y = [0.0; R];
+        y.copy_from_slice(&col[i..i + R]);
+        for (row, fk) in acc.iter_mut().zip(f) {
+            for (x, yr) in row.iter_mut().zip(y) {
+                *x -= fk * yr;
+            }
+        }
+    }
+    for (k, row) in acc.iter().enumerate() {
+        rest[k * n + i..k * n + i + R].copy_from_slice(row);
+    }
+}
 
 dispatch!(
     /// Solves `L X = B` in place for the column-major lower-triangular `n × n` matrix `l` (non-zero
@@ -677,6 +764,78 @@ pub fn dot4(a: &[f64], bs: [&[f64]; 4]) -> [f64; 4] {
 mod tests {
     use super::*;
     use nalgebra::DMatrix;
+
+    /// The factor one column at a time, each entry updated in column order: what
+    /// [`cholesky_in_place`] must give bit for bit.
+    fn cholesky_columns(a: &mut [f64], n: usize) -> bool {
+        for j in 0..n {
+            for i in j..n {
+                let mut x = a[j * n + i];
+                for p in 0..j {
+                    x -= a[p * n + j] * a[p * n + i];
+                }
+                a[j * n + i] = x;
+            }
+            let d = a[j * n + j];
+            if !(d > 0.0 && d.is_finite()) {
+                return false;
+            }
+            let d = d.sqrt();
+            a[j * n + j] = d;
+            for i in j + 1..n {
+                a[j * n + i] *= 1.0 / d;
+            }
+            for i in 0..j {
+                a[j * n + i] = 0.0;
+            }
+        }
+        true
+    }
+
+    #[test]
+    fn the_tiled_cholesky_is_the_column_one_bit_for_bit() {
+        let sizes = (1usize..=41).chain([87, 100, 173, 174, 175]);
+        for n in sizes {
+            let a = DMatrix::from_fn(n, n, |r, c| (((r * 7 + c * 13) % 11) as f64 - 5.0) * 0.31);
+            let spd = &a * a.transpose() + DMatrix::identity(n, n) * 0.5;
+            let mut want = spd.clone();
+            assert!(cholesky_columns(want.as_mut_slice(), n));
+            let mut got = spd.clone();
+            // the upper triangle is not read
+            for c in 0..n {
+                for r in 0..c {
+                    got[(r, c)] = f64::NAN;
+                }
+            }
+            type Factor = fn(&mut [f64], usize) -> bool;
+            let mut paths: Vec<(&str, Factor)> = vec![
+                ("dispatched", cholesky_in_place),
+                ("baseline", cholesky_tiled::<8>),
+                ("16-row tiles", cholesky_tiled::<16>),
+            ];
+            #[cfg(target_arch = "x86_64")]
+            if is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma") {
+                // SAFETY: the CPU has the features
+                paths.push(("avx2", |a, n| unsafe { cholesky_avx2(a, n) }));
+            }
+            for (name, path) in paths {
+                let mut mine = got.clone();
+                assert!(path(mine.as_mut_slice(), n));
+                for (g, w) in mine.iter().zip(want.iter()) {
+                    assert_eq!(g.to_bits(), w.to_bits(), "n = {n}, {name}");
+                }
+            }
+        }
+        // a matrix that is not positive definite fails in any block of four columns
+        for (n, bad) in [(9usize, 0usize), (9, 5), (30, 17), (30, 29)] {
+            let mut m = DMatrix::<f64>::identity(n, n);
+            m[(bad, bad)] = -1.0;
+            assert!(
+                !cholesky_in_place(m.as_mut_slice(), n),
+                "n = {n}, bad = {bad}"
+            );
+        }
+    }
 
     #[test]
     fn kernels_match_nalgebra() {
