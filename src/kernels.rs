@@ -1,7 +1,8 @@
 //! Column-oriented dense kernels shared by the tracker and the gap filler: Cholesky
 //! factorisation and triangular solves of small column-major matrices (`n` ≲ 200), compiled
 //! twice and chosen at run time — for AVX2 + FMA where the CPU has them (the inner loops
-//! are contiguous axpys that then vectorise four wide), else for the baseline target.
+//! are contiguous axpys that then vectorise four wide), else for the baseline target; the
+//! Cholesky factor also for AVX-512 (register tiles of 16 rows).
 //!
 //! At these sizes they beat nalgebra's generic loops (which the baseline target compiles
 //! for SSE2) by 2-4× (`benches/README.md`). Triangular solves with many right-hand sides
