@@ -179,8 +179,10 @@ def test_track_widens_the_open_joint_by_what_the_search_found_and_nothing_else()
     # reaches it in every frame
     assert found["fraction"] == 1.0
     assert (1.96 * res.joints_std[:, knee] >= found["distance"] * (1 - 1e-9)).all()
-    # a second search replaces the widening rather than adding to it
+    # a second search of the widened result measures against the Gaussian SDs: it finds
+    # what the first found, and replaces the widening rather than adding to it
     again = acm_rs.second_solutions(res, frames=[15, 25])
+    np.testing.assert_allclose(again.widening(), added, rtol=1e-9)
     widen(res, again)
     np.testing.assert_allclose(
         res.joints_std, np.sqrt(plain.joints_std**2 + again.widening()[None, :, None] ** 2)

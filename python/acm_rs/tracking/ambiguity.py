@@ -140,6 +140,18 @@ def widen(result: PoseResult, found: SecondSolutions) -> np.ndarray:
     return added
 
 
+def gaussian_joints_std(result: PoseResult) -> np.ndarray:
+    """The joints' SDs of the Gaussian posterior, shape (T, J, 3) (world units):
+    ``result.joints_std`` without a :func:`widen` widening. The search measures "beyond the
+    95 % interval" against these, so that a second search of a widened result finds what the
+    first one found."""
+    added = result.info.get("joints_std_widening")
+    if added is None:
+        return result.joints_std
+    var = result.joints_std**2 - np.asarray(added)[None, :, None] ** 2
+    return np.sqrt(np.maximum(var, 0.0))
+
+
 def _swivel(points: np.ndarray, a: int, b: int, c: int, angle: float) -> np.ndarray:
     """``points`` with point ``b`` rotated by ``angle`` about the axis through ``a`` and ``c``."""
     axis = points[c] - points[a]
@@ -253,7 +265,7 @@ def second_solutions(
         result.r[picked],
         marker_std=np.asarray(msd)[picked],
         chi2=chi2,
-        joints_std=result.joints_std[picked],
+        joints_std=gaussian_joints_std(result)[picked],
         free=np.asarray(state_map.free_indices, dtype=np.int64)[: state_map.n_pose_state],
         within_limits=state_map.joint_limits,
         bone_lengths=lengths,
