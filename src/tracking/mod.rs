@@ -285,9 +285,7 @@ pub struct EmOutcome {
     pub interrupted: bool,
     /// Which parameters [`Self::params`] are: `Some(k)` = those evaluated by the E-step of
     /// iteration `k` (1-based; the parameters before its M-step), because their marginal
-    /// log-likelihood was higher than the last parameters'; `None` = the last parameters:
-    /// when EM converged with the Gaussian noise model, those its last E-step evaluated,
-    /// else the last M-step's.
+    /// log-likelihood was higher than the last parameters'; `None` = the last M-step's.
     pub returned: Option<usize>,
     /// Whether the run stopped because [`EmOptions::patience`] E-steps in a row stayed below
     /// the best log-likelihood (then [`Self::params`] are the best ones and `converged` is
@@ -973,11 +971,7 @@ impl<E: Emission> Tracker<E> {
     }
 
     /// Alg. 11 followed by a final E-step with the learned parameters (sec. 4.7), so that the
-    /// moments afterwards are the smoothed posterior under the returned parameters. When EM
-    /// converges (Gaussian noise model), the parameters its last E-step evaluated are returned
-    /// with that E-step's moments instead: the last M-step changed the log-likelihood by less
-    /// than the stop's tolerance, and its final E-step would cost one iteration's E-step more
-    /// (beyond the paper).
+    /// moments afterwards are the smoothed posterior under the returned parameters.
     ///
     /// The unscented E-step and the innovation gate make EM's marginal log-likelihood
     /// non-monotone (it may fall between iterations). The run therefore keeps the parameters
@@ -1000,8 +994,6 @@ impl<E: Emission> Tracker<E> {
         let mut params = init;
         let mut history: Vec<Iteration> = Vec::new();
         let (mut converged, mut interrupted, mut stalled) = (false, false, false);
-        // the counts of the last E-step when EM converged on it (its moments are returned)
-        let mut settled: Option<FilterStats> = None;
         // (log-likelihood, iteration, parameters) of the best E-step so far
         let mut best: Option<(f64, usize, Params)> = None;
         // over-relaxation: the factor of the evaluated step, the next step's, and (for an
@@ -1072,18 +1064,9 @@ impl<E: Emission> Tracker<E> {
                 None => delta < opts.tol,
             };
             if done {
+                // (the plain step: the final E-step should not risk a rejection)
+                params = next;
                 converged = true;
-                if opts.dof.is_none() {
-                    // The moments of this E-step are the smoothed posterior under `params`,
-                    // the parameters it evaluated: those are returned with them. The last
-                    // M-step's change is below the stop's tolerance, and a final E-step
-                    // under it would cost one more iteration's E-step (~5 % of EM). (The
-                    // Student-t M-step has changed the weights: there the final E-step runs.)
-                    settled = Some(stats);
-                } else {
-                    // (the plain step: the final E-step should not risk a rejection)
-                    params = next;
-                }
                 break;
             }
             // E-steps k - p + 1 ..= k all scored below the best (that of E-step k - p or earlier)
@@ -1134,10 +1117,7 @@ impl<E: Emission> Tracker<E> {
                 final_stats,
             });
         }
-        let mut final_stats = match settled {
-            Some(stats) => stats,
-            None => self.e_step(&params, opts.gate)?,
-        };
+        let mut final_stats = self.e_step(&params, opts.gate)?;
         let mut returned = None;
         if let Some((ll, k, p)) = best {
             let margin = opts.ll_tol.unwrap_or(1e-6) * final_stats.used.max(1) as f64;
