@@ -127,6 +127,13 @@ pub fn chol_solve_mat(l: &DMatrix<f64>, b: &mut DMatrix<f64>) {
 /// allocation-free kernel of [`crate::kernels::syrk_rows_lower`], split between two threads
 /// by columns (equal shares of the triangle) when large and `parallel`, then mirrored.
 pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64], parallel: bool) {
+    add_gram_rows_lower(a, rows, k, c, parallel);
+    mirror_lower(c, rows);
+}
+
+/// [`add_gram_rows`] into the lower triangle of `c` only (the upper one is left as it was),
+/// e.g. for a Cholesky factorisation that reads only the lower triangle.
+pub fn add_gram_rows_lower(a: &[f64], rows: usize, k: usize, c: &mut [f64], parallel: bool) {
     debug_assert_eq!(a.len(), rows * k);
     debug_assert_eq!(c.len(), rows * rows);
     if rows == 0 || k == 0 {
@@ -147,7 +154,6 @@ pub fn add_gram_rows(a: &[f64], rows: usize, k: usize, c: &mut [f64], parallel: 
         syrk_rows_lower(a, rows, k, 0..split, c0);
         syrk_rows_lower(a, rows, k, split..rows, c1);
     }
-    mirror_lower(c, rows);
 }
 
 /// Copies the lower triangle of the column-major `n × n` slice onto its upper triangle.
@@ -230,6 +236,24 @@ mod tests {
                 results.push(c);
             }
             assert_eq!(results[0], results[1], "serial and parallel differ");
+            // the lower-only product: the same lower triangle, the upper one untouched
+            let mut lower = vec![f64::NAN; rows * rows];
+            for j in 0..rows {
+                for i in j..rows {
+                    lower[j * rows + i] = if i == j { 1.0 } else { 0.0 };
+                }
+            }
+            add_gram_rows_lower(&a, rows, k, &mut lower, true);
+            for j in 0..rows {
+                for i in 0..rows {
+                    let v = lower[j * rows + i];
+                    if i >= j {
+                        assert_eq!(v, results[0][j * rows + i]);
+                    } else {
+                        assert!(v.is_nan());
+                    }
+                }
+            }
         }
     }
 

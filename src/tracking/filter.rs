@@ -20,7 +20,10 @@
 //! is dominated by the Gram matrix `ỸᵀỸ` (`(2n)² n_p` multiply-adds) and the emission of `2n`
 //! sigma points.
 
-use super::dense::{add_a_at, add_gram_rows, at_a_into, cholesky, cholesky_into, symmetrize_slice};
+use super::dense::{
+    add_a_at, add_gram_rows, add_gram_rows_lower, at_a_into, cholesky, cholesky_into,
+    symmetrize_slice,
+};
 use super::model::Emission;
 use super::Params;
 use crate::error::Result;
@@ -632,14 +635,15 @@ fn linear_update(
     let ns = mbar.len();
     let m2 = 2 * n;
     let np = nu.len();
-    // M = I + Ỹ Ỹᵀ (the dominant product), factorised in place.
+    // M = I + Ỹ Ỹᵀ (the dominant product), factorised in place: its lower triangle only,
+    // the one the factorisation reads (the same factor bit for bit as from the mirrored,
+    // symmetrised M: both triangles are the same sums)
     gram.clear();
     gram.resize(m2 * m2, 0.0);
     for i in 0..m2 {
         gram[i * m2 + i] = 1.0;
     }
-    add_gram_rows(ytil, m2, np, gram, parallel);
-    symmetrize_slice(gram, m2);
+    add_gram_rows_lower(ytil, m2, np, gram, parallel);
     if !cholesky_in_place(gram, m2) {
         // (never seen: M ⪰ I) the failed factorisation overwrote part of `gram`: rebuild M,
         // then the allocating path with its jitter and error message
