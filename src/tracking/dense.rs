@@ -157,7 +157,7 @@ pub fn add_gram_rows_lower(a: &[f64], rows: usize, k: usize, c: &mut [f64], para
 }
 
 /// Copies the lower triangle of the column-major `n × n` slice onto its upper triangle.
-fn mirror_lower(c: &mut [f64], n: usize) {
+pub fn mirror_lower(c: &mut [f64], n: usize) {
     for j in 0..n {
         for i in j + 1..n {
             c[i * n + j] = c[j * n + i];

@@ -21,7 +21,7 @@
 //! sigma points.
 
 use super::dense::{
-    add_a_at, add_gram_rows, add_gram_rows_lower, at_a_into, cholesky, cholesky_into,
+    add_a_at, add_gram_rows, add_gram_rows_lower, cholesky, cholesky_into, mirror_lower,
     symmetrize_slice,
 };
 use super::model::Emission;
@@ -707,12 +707,16 @@ fn linear_update(
             &mut out.v[..]
         }
     };
-    at_a_into(u, n, ns, v, parallel);
+    // UᵀU into the lower triangle (columns of U as rows), + L̃[:, n:] L̃[:, n:]ᵀ there too,
+    // then mirrored once: exactly symmetric (as `at_a_into` followed by `add_a_at` and a
+    // symmetrisation, bit for bit, with two passes over the ns × ns fewer)
+    v.fill(0.0);
+    add_gram_rows_lower(&u[..n * ns], ns, n, v, parallel);
     if ns > n {
-        // + L̃[:, n:] L̃[:, n:]ᵀ
         add_a_at(&l_full[n * ns..], ns, ns - n, v);
+    } else {
+        mirror_lower(v, ns);
     }
-    symmetrize_slice(v, ns);
     Ok(())
 }
 
